@@ -1,0 +1,234 @@
+//! Accumulation buffers: per pixel sums and sums of squares for each buffer of
+//! CONVENTIONS.md, so means, per-pixel variances and TTUV come from one place.
+//! Sums are f64: 10^5 samples per pixel lose nothing.
+
+use crate::integrator::PathSample;
+use glam::Vec3;
+
+/// The buffers a render accumulates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Buffer {
+    /// Order 0: the sky seen through the medium (black environment: empty).
+    Direct,
+    /// Orders 1 .. k-1.
+    Low,
+    /// Orders >= k (path traced, or predicted).
+    High,
+    /// Everything: direct + low + high.
+    Full,
+}
+
+impl Buffer {
+    pub const ALL: [Buffer; 4] = [Buffer::Direct, Buffer::Low, Buffer::High, Buffer::Full];
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            Buffer::Direct => "direct",
+            Buffer::Low => "low",
+            Buffer::High => "high",
+            Buffer::Full => "full",
+        }
+    }
+
+    fn index(&self) -> usize {
+        *self as usize
+    }
+}
+
+#[derive(Clone, Debug)]
+struct Layer {
+    sum: Vec<[f64; 3]>,
+    sum_sq: Vec<[f64; 3]>,
+}
+
+impl Layer {
+    fn new(n: usize) -> Self {
+        Layer {
+            sum: vec![[0.0; 3]; n],
+            sum_sq: vec![[0.0; 3]; n],
+        }
+    }
+
+    #[inline]
+    fn add(&mut self, i: usize, v: Vec3) {
+        let (s, q) = (&mut self.sum[i], &mut self.sum_sq[i]);
+        for c in 0..3 {
+            let x = v[c] as f64;
+            s[c] += x;
+            q[c] += x * x;
+        }
+    }
+}
+
+/// A progressive image: every pixel has received `spp` samples.
+#[derive(Clone, Debug)]
+pub struct Film {
+    width: u32,
+    height: u32,
+    spp: u32,
+    layers: [Layer; 4],
+    /// Samples dropped because they were not finite (a bug if ever non-zero).
+    rejected: u64,
+}
+
+impl Film {
+    pub fn new(width: u32, height: u32) -> Self {
+        let n = width as usize * height as usize;
+        Film {
+            width,
+            height,
+            spp: 0,
+            layers: std::array::from_fn(|_| Layer::new(n)),
+            rejected: 0,
+        }
+    }
+
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+    pub fn spp(&self) -> u32 {
+        self.spp
+    }
+    pub fn rejected_samples(&self) -> u64 {
+        self.rejected
+    }
+    pub fn pixel_count(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    /// Adds one pass: exactly one sample for every pixel, in pixel order. A sample
+    /// that is not finite never enters a buffer: it counts as zero and is recorded.
+    pub fn add_pass(&mut self, samples: &[PathSample]) {
+        assert_eq!(
+            samples.len(),
+            self.pixel_count(),
+            "a pass covers every pixel once"
+        );
+        for (i, s) in samples.iter().enumerate() {
+            let s = if s.is_finite() {
+                *s
+            } else {
+                self.rejected += 1;
+                PathSample::default()
+            };
+            self.layers[0].add(i, s.direct);
+            self.layers[1].add(i, s.low);
+            self.layers[2].add(i, s.high);
+            self.layers[3].add(i, s.full());
+        }
+        self.spp += 1;
+    }
+
+    /// Merges another film of the same size (its samples follow ours).
+    pub fn merge(&mut self, other: &Film) {
+        assert_eq!((self.width, self.height), (other.width, other.height));
+        for (a, b) in self.layers.iter_mut().zip(&other.layers) {
+            for (x, y) in a.sum.iter_mut().zip(&b.sum) {
+                for c in 0..3 {
+                    x[c] += y[c];
+                }
+            }
+            for (x, y) in a.sum_sq.iter_mut().zip(&b.sum_sq) {
+                for c in 0..3 {
+                    x[c] += y[c];
+                }
+            }
+        }
+        self.spp += other.spp;
+        self.rejected += other.rejected;
+    }
+
+    /// Per-pixel mean (the image) of a buffer.
+    pub fn mean(&self, buffer: Buffer) -> Vec<[f32; 3]> {
+        let inv = if self.spp > 0 {
+            1.0 / self.spp as f64
+        } else {
+            0.0
+        };
+        self.layers[buffer.index()]
+            .sum
+            .iter()
+            .map(|s| s.map(|x| (x * inv) as f32))
+            .collect()
+    }
+
+    /// Raw per-pixel sums (for exact comparisons in tests).
+    pub fn sums(&self, buffer: Buffer) -> &[[f64; 3]] {
+        &self.layers[buffer.index()].sum
+    }
+
+    /// Per-pixel, per-channel variance of the pixel ESTIMATE (the sample variance
+    /// divided by spp): the "variance" of CONVENTIONS.md's TTUV.
+    pub fn variance_of_mean(&self, buffer: Buffer) -> Vec<[f32; 3]> {
+        let n = self.spp as f64;
+        let layer = &self.layers[buffer.index()];
+        layer
+            .sum
+            .iter()
+            .zip(&layer.sum_sq)
+            .map(|(s, q)| {
+                if self.spp < 2 {
+                    return [0.0; 3];
+                }
+                std::array::from_fn(|c| {
+                    let mean = s[c] / n;
+                    let var = ((q[c] / n - mean * mean) * n / (n - 1.0)).max(0.0);
+                    (var / n) as f32
+                })
+            })
+            .collect()
+    }
+
+    /// Mean over pixels with a non-zero mean of the channel-averaged variance of the
+    /// pixel estimate (CONVENTIONS.md: TTUV = this times the render time).
+    pub fn mean_variance_of_mean(&self, buffer: Buffer) -> f64 {
+        let means = self.mean(Buffer::Full);
+        let vars = self.variance_of_mean(buffer);
+        let (mut sum, mut count) = (0.0f64, 0usize);
+        for (m, v) in means.iter().zip(&vars) {
+            if m.iter().any(|&x| x > 0.0) {
+                sum += (v[0] + v[1] + v[2]) as f64 / 3.0;
+                count += 1;
+            }
+        }
+        if count == 0 { 0.0 } else { sum / count as f64 }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rejects_non_finite_and_tracks_variance() {
+        let mut f = Film::new(2, 1);
+        let good = PathSample {
+            direct: Vec3::ZERO,
+            low: Vec3::ONE,
+            high: Vec3::splat(2.0),
+        };
+        let bad = PathSample {
+            direct: Vec3::ZERO,
+            low: Vec3::NAN,
+            high: Vec3::ONE,
+        };
+        f.add_pass(&[good, bad]);
+        f.add_pass(&[
+            PathSample::default(),
+            PathSample {
+                high: Vec3::splat(f32::INFINITY),
+                ..good
+            },
+        ]);
+        assert_eq!(f.rejected_samples(), 2);
+        let m = f.mean(Buffer::Full);
+        assert_eq!(m[0], [1.5; 3]);
+        assert_eq!(m[1], [0.0; 3]);
+        // Samples 3 and 0: sample variance 4.5, variance of the mean 2.25.
+        assert!((f.variance_of_mean(Buffer::Full)[0][0] - 2.25).abs() < 1e-6);
+        assert!(m.iter().flatten().all(|x| x.is_finite()));
+    }
+}

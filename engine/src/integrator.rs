@@ -1,0 +1,256 @@
+//! Unidirectional volumetric path tracing with next event estimation at every vertex,
+//! Russian roulette on throughput, and the split of every sample's contribution by
+//! scattering order into the buffers of CONVENTIONS.md:
+//! order 0 (the sky seen through the medium) -> `direct`, orders 1 .. k-1 -> `low`,
+//! orders >= k -> `high`. Next event estimation at the j-th vertex and a path that
+//! escapes to the sky after j scattering events both count as order j.
+//!
+//! The medium is grey (scalar sigma_t and albedo), so the path throughput is a scalar
+//! and only the lights carry colour.
+
+use crate::light::{Sky, Sun};
+use crate::medium::{FreeFlight, Medium};
+use crate::predictor::InScatterPredictor;
+use crate::rng::Rng;
+use glam::Vec3;
+use std::sync::Arc;
+
+/// Everything a render reads: immutable once built, shared between threads.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub medium: Medium,
+    pub sun: Option<Sun>,
+    pub sky: Sky,
+    pub camera: crate::camera::Camera,
+}
+
+/// How the high orders are computed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Mode {
+    /// Full path tracing.
+    Reference,
+    /// Vertices 1 .. k-1 path traced; at vertex k the predictor's L_i, Russian-rouletted
+    /// with probability `p` and weighted 1/p (thesis section 5.4); the path ends there.
+    Predict { p: f32 },
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderSettings {
+    /// Scene seed: every random stream derives from (seed, pass, pixel).
+    pub seed: u64,
+    /// First scattering order of the high-order buffer (k >= 1).
+    pub k: u32,
+    /// Highest scattering order rendered (None = all).
+    pub max_order: Option<u32>,
+    pub mode: Mode,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        RenderSettings {
+            seed: 0,
+            k: 1,
+            max_order: None,
+            mode: Mode::Reference,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum IntegratorError {
+    #[error("k must be at least 1, got {0}")]
+    BadK(u32),
+    #[error("prediction probability p must lie in (0, 1], got {0}")]
+    BadP(f32),
+    #[error("prediction mode needs a predictor (a trained model), and none is loaded")]
+    NoPredictor,
+    #[error("prediction mode needs a sun: the model predicts light from a directional light")]
+    NoSun,
+}
+
+/// One path's contribution, split by scattering order.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PathSample {
+    pub direct: Vec3,
+    pub low: Vec3,
+    pub high: Vec3,
+}
+
+impl PathSample {
+    pub fn full(&self) -> Vec3 {
+        self.direct + self.low + self.high
+    }
+    pub fn is_finite(&self) -> bool {
+        self.direct.is_finite() && self.low.is_finite() && self.high.is_finite()
+    }
+}
+
+/// Russian roulette on throughput starts after this many scattering events.
+const RR_MIN_ORDER: u32 = 3;
+
+#[derive(Clone)]
+pub struct Integrator {
+    settings: RenderSettings,
+    predictor: Option<Arc<dyn InScatterPredictor>>,
+}
+
+impl std::fmt::Debug for Integrator {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Integrator")
+            .field("settings", &self.settings)
+            .field(
+                "predictor",
+                &self.predictor.as_ref().map(|p| p.name().to_string()),
+            )
+            .finish()
+    }
+}
+
+impl Integrator {
+    pub fn new(
+        settings: RenderSettings,
+        predictor: Option<Arc<dyn InScatterPredictor>>,
+    ) -> Result<Self, IntegratorError> {
+        if settings.k < 1 {
+            return Err(IntegratorError::BadK(settings.k));
+        }
+        if let Mode::Predict { p } = settings.mode {
+            if !(p > 0.0 && p <= 1.0) {
+                return Err(IntegratorError::BadP(p));
+            }
+            if predictor.is_none() {
+                return Err(IntegratorError::NoPredictor);
+            }
+        }
+        Ok(Integrator {
+            settings,
+            predictor,
+        })
+    }
+
+    pub fn settings(&self) -> &RenderSettings {
+        &self.settings
+    }
+
+    /// Checks what the scene must provide for this integrator.
+    pub fn check_scene(&self, scene: &Scene) -> Result<(), IntegratorError> {
+        if matches!(self.settings.mode, Mode::Predict { .. }) && scene.sun.is_none() {
+            return Err(IntegratorError::NoSun);
+        }
+        Ok(())
+    }
+
+    /// Radiance arriving at `o` from direction `-d` (i.e. along the ray o + t d),
+    /// split by scattering order.
+    #[inline]
+    pub fn trace(&self, scene: &Scene, o: Vec3, d: Vec3, rng: &mut Rng) -> PathSample {
+        let mut out = PathSample::default();
+        match scene.medium.sample_free_flight(o, d, f32::INFINITY, rng) {
+            FreeFlight::Escaped => out.direct = scene.sky.radiance,
+            FreeFlight::Collision { t } => {
+                let k = self.settings.k;
+                self.scatter_from(
+                    scene,
+                    o + d * t,
+                    -d,
+                    1,
+                    scene.medium.albedo(),
+                    rng,
+                    &mut |order, v| {
+                        if order >= k {
+                            out.high += v
+                        } else {
+                            out.low += v
+                        }
+                    },
+                );
+            }
+        }
+        out
+    }
+
+    /// Estimates the in-scattered radiance L_i(x -> wo) (eq. 2.7) at a point inside the
+    /// medium, all orders, by path tracing from that point: the quantity the learned
+    /// model predicts (for a unit sun), and the ground truth it is trained on.
+    pub fn in_scattered_radiance(&self, scene: &Scene, x: Vec3, wo: Vec3, rng: &mut Rng) -> Vec3 {
+        let mut sum = Vec3::ZERO;
+        self.scatter_from(scene, x, wo, 1, 1.0, rng, &mut |_, v| sum += v);
+        sum
+    }
+
+    /// The path from a scattering vertex at `x` (the `order`-th) with outgoing
+    /// direction `wo` and throughput `beta` (albedo of this vertex included).
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    fn scatter_from(
+        &self,
+        scene: &Scene,
+        mut x: Vec3,
+        mut wo: Vec3,
+        mut order: u32,
+        mut beta: f32,
+        rng: &mut Rng,
+        add: &mut impl FnMut(u32, Vec3),
+    ) {
+        let medium = &scene.medium;
+        let phase = medium.phase();
+        let max_order = self.settings.max_order.unwrap_or(u32::MAX);
+        loop {
+            if order > max_order {
+                return;
+            }
+            if let Mode::Predict { p } = self.settings.mode {
+                if order == self.settings.k {
+                    // Predict L_i at vertex k, roulette with probability p.
+                    if let (Some(pred), Some(sun)) = (&self.predictor, &scene.sun) {
+                        if rng.uniform() < p {
+                            let li = pred.predict(medium, sun, x, wo);
+                            if li.is_finite() && li >= 0.0 {
+                                add(order, sun.radiance() * (beta * li / p));
+                            }
+                        }
+                    }
+                    return;
+                }
+            }
+            // Next event estimation toward the sun (order `order`).
+            if let Some(sun) = &scene.sun {
+                let wi = sun.sample_wi(rng.uniform2());
+                let f = beta * phase.eval(wo, wi);
+                if f > 0.0 {
+                    let tr = medium.transmittance_ratio(x, wi, f32::INFINITY, rng);
+                    if tr > 0.0 {
+                        add(order, sun.radiance() * (f * tr));
+                    }
+                }
+            }
+            // Russian roulette on throughput.
+            if order >= RR_MIN_ORDER && beta < 1.0 {
+                let q = beta.max(0.05);
+                if rng.uniform() >= q {
+                    return;
+                }
+                beta /= q;
+            }
+            // Continue: sample the phase function (weight p / pdf = 1).
+            let wi = phase.sample(wo, rng.uniform2()).wi;
+            match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {
+                FreeFlight::Escaped => {
+                    if !scene.sky.is_black() {
+                        add(order, scene.sky.radiance * beta);
+                    }
+                    return;
+                }
+                FreeFlight::Collision { t } => {
+                    x += wi * t;
+                    wo = -wi;
+                    order += 1;
+                    beta *= medium.albedo();
+                    if beta <= 0.0 {
+                        return;
+                    }
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,493 @@
+//! The heterogeneous medium: sigma_t(x) = rho * d(x), a majorant grid traversed by a
+//! 3D DDA, and the three ways to get at transmittance along a ray:
+//! delta (Woodcock) tracking for free flights, ratio tracking for shadow rays, and
+//! deterministic ray marching for the optical depth the learned model's features use.
+//!
+//! A medium answers two questions (pbrt-v4 `SamplePoint` / `SampleRay`): the
+//! coefficients at a point, and the majorant segments along a ray. One tracking
+//! loop, [`Medium::sample_t_maj`], calls back at every tentative collision; the
+//! callers decide absorb, scatter or null.
+
+use crate::grid::{Bounds3, DensityGrid};
+use crate::phase::PhaseFunction;
+use crate::rng::Rng;
+use crate::sampling::sample_exponential;
+use glam::{IVec3, UVec3, Vec3};
+use std::sync::Arc;
+
+/// Coarse grid of density maxima, each cell covering `cell_voxels`^3 voxels of the
+/// density grid plus the one-voxel trilinear footprint around them (pbrt-v4
+/// `SampledGrid::MaxValue` widens the same way), over the grid's support.
+#[derive(Clone, Debug)]
+pub struct MajorantGrid {
+    dims: UVec3,
+    max_density: Vec<f32>,
+    /// World box covered (the density grid's support).
+    bounds: Bounds3,
+    inv_cell_size: Vec3,
+}
+
+impl MajorantGrid {
+    /// Default cell edge in voxels (see `nimbus bench render` for the trade-off).
+    pub const DEFAULT_CELL_VOXELS: u32 = 4;
+
+    pub fn new(grid: &DensityGrid, cell_voxels: u32) -> Self {
+        let b = cell_voxels.max(1);
+        let n = grid.dims();
+        // Support spans n + 1 voxels in index space u' in [-0.5, n + 0.5].
+        let dims = (n + 1 + UVec3::splat(b - 1)) / b;
+        let support = grid.support_bounds();
+        let cell_size = grid.voxel_size() * b as f32;
+        let mut max_density = vec![0.0f32; (dims.x * dims.y * dims.z) as usize];
+        for cz in 0..dims.z {
+            for cy in 0..dims.y {
+                for cx in 0..dims.x {
+                    // Cell c spans u' in [-0.5 + c b, -0.5 + (c + 1) b]; the density there
+                    // depends on voxels floor(u' - 0.5) .. floor(u' - 0.5) + 1, i.e.
+                    // c b - 1 ..= (c + 1) b.
+                    let lo = |c: u32| (c as i64 * b as i64 - 1).max(0) as u32;
+                    let hi = |c: u32, nn: u32| (((c + 1) * b) as i64).min(nn as i64 - 1) as u32;
+                    let mut m = 0.0f32;
+                    for z in lo(cz)..=hi(cz, n.z) {
+                        for y in lo(cy)..=hi(cy, n.y) {
+                            for x in lo(cx)..=hi(cx, n.x) {
+                                m = m.max(grid.voxel(x, y, z));
+                            }
+                        }
+                    }
+                    max_density[(cx + dims.x * (cy + dims.y * cz)) as usize] = m;
+                }
+            }
+        }
+        MajorantGrid {
+            dims,
+            max_density,
+            bounds: support,
+            inv_cell_size: cell_size.recip(),
+        }
+    }
+
+    pub fn dims(&self) -> UVec3 {
+        self.dims
+    }
+
+    #[inline]
+    fn cell(&self, c: IVec3) -> f32 {
+        self.max_density
+            [(c.x as u32 + self.dims.x * (c.y as u32 + self.dims.y * c.z as u32)) as usize]
+    }
+
+    /// Iterates the segments of the ray `o + t d`, t in [t_min, t_max], over the
+    /// majorant cells it crosses, in order.
+    #[inline]
+    pub fn segments(&self, o: Vec3, d: Vec3, t_min: f32, t_max: f32) -> MajorantIter<'_> {
+        let inv_d = d.recip();
+        let Some((t0, t1)) = self.bounds.intersect(o, inv_d, t_min, t_max) else {
+            return MajorantIter::empty(self);
+        };
+        // Position in cell units at entry.
+        let q = (o + d * t0 - self.bounds.min) * self.inv_cell_size;
+        let dims = self.dims.as_ivec3();
+        let cell = q.floor().as_ivec3().clamp(IVec3::ZERO, dims - 1);
+        let dq = d * self.inv_cell_size;
+        let mut step = IVec3::ZERO;
+        let mut next_t = Vec3::splat(f32::INFINITY);
+        let mut delta_t = Vec3::splat(f32::INFINITY);
+        let mut stop = IVec3::ZERO;
+        for a in 0..3 {
+            if dq[a] > 0.0 {
+                step[a] = 1;
+                stop[a] = dims[a];
+                next_t[a] = t0 + (cell[a] as f32 + 1.0 - q[a]) / dq[a];
+                delta_t[a] = 1.0 / dq[a];
+            } else if dq[a] < 0.0 {
+                step[a] = -1;
+                stop[a] = -1;
+                next_t[a] = t0 + (cell[a] as f32 - q[a]) / dq[a];
+                delta_t[a] = -1.0 / dq[a];
+            } else {
+                stop[a] = i32::MIN;
+            }
+        }
+        MajorantIter {
+            grid: self,
+            cell,
+            step,
+            stop,
+            next_t,
+            delta_t,
+            t: t0,
+            t_end: t1,
+            done: false,
+        }
+    }
+}
+
+/// One stretch of a ray with a constant majorant density (multiply by rho).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MajorantSegment {
+    pub t_min: f32,
+    pub t_max: f32,
+    pub max_density: f32,
+}
+
+/// The 3D DDA (Amanatides and Woo) over the majorant grid.
+pub struct MajorantIter<'a> {
+    grid: &'a MajorantGrid,
+    cell: IVec3,
+    step: IVec3,
+    stop: IVec3,
+    next_t: Vec3,
+    delta_t: Vec3,
+    t: f32,
+    t_end: f32,
+    done: bool,
+}
+
+impl<'a> MajorantIter<'a> {
+    fn empty(grid: &'a MajorantGrid) -> Self {
+        MajorantIter {
+            grid,
+            cell: IVec3::ZERO,
+            step: IVec3::ZERO,
+            stop: IVec3::ZERO,
+            next_t: Vec3::ZERO,
+            delta_t: Vec3::ZERO,
+            t: 0.0,
+            t_end: 0.0,
+            done: true,
+        }
+    }
+}
+
+impl Iterator for MajorantIter<'_> {
+    type Item = MajorantSegment;
+
+    #[inline]
+    fn next(&mut self) -> Option<MajorantSegment> {
+        if self.done {
+            return None;
+        }
+        let axis = if self.next_t.x < self.next_t.y {
+            if self.next_t.x < self.next_t.z { 0 } else { 2 }
+        } else if self.next_t.y < self.next_t.z {
+            1
+        } else {
+            2
+        };
+        let exit = self.next_t[axis].min(self.t_end);
+        let seg = MajorantSegment {
+            t_min: self.t,
+            t_max: exit,
+            max_density: self.grid.cell(self.cell),
+        };
+        self.t = exit;
+        if exit >= self.t_end {
+            self.done = true;
+        } else {
+            self.cell[axis] += self.step[axis];
+            if self.cell[axis] == self.stop[axis] {
+                self.done = true;
+            }
+            self.next_t[axis] += self.delta_t[axis];
+        }
+        Some(seg)
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MediumError {
+    #[error("density scale rho must be finite and >= 0, got {0}")]
+    BadRho(f32),
+    #[error("albedo must lie in [0, 1], got {0}")]
+    BadAlbedo(f32),
+}
+
+/// What happened to a free flight.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum FreeFlight {
+    /// A real collision at distance `t`.
+    Collision { t: f32 },
+    /// The ray left the medium (or passed t_max) without a real collision.
+    Escaped,
+}
+
+/// A heterogeneous cloud: a density grid scaled by rho, a constant albedo and phase
+/// function, and the majorant grid used for tracking.
+#[derive(Clone, Debug)]
+pub struct Medium {
+    grid: Arc<DensityGrid>,
+    majorant: MajorantGrid,
+    rho: f32,
+    albedo: f32,
+    phase: PhaseFunction,
+}
+
+/// Transmittance below which ratio tracking plays Russian roulette (unbiased).
+const RATIO_TRACKING_RR_THRESHOLD: f32 = 0.1;
+
+impl Medium {
+    pub fn new(
+        grid: Arc<DensityGrid>,
+        rho: f32,
+        albedo: f32,
+        phase: PhaseFunction,
+    ) -> Result<Self, MediumError> {
+        Self::with_majorant_cells(grid, rho, albedo, phase, MajorantGrid::DEFAULT_CELL_VOXELS)
+    }
+
+    pub fn with_majorant_cells(
+        grid: Arc<DensityGrid>,
+        rho: f32,
+        albedo: f32,
+        phase: PhaseFunction,
+        cell_voxels: u32,
+    ) -> Result<Self, MediumError> {
+        if !(rho.is_finite() && rho >= 0.0) {
+            return Err(MediumError::BadRho(rho));
+        }
+        if !(0.0..=1.0).contains(&albedo) {
+            return Err(MediumError::BadAlbedo(albedo));
+        }
+        let majorant = MajorantGrid::new(&grid, cell_voxels);
+        Ok(Medium {
+            grid,
+            majorant,
+            rho,
+            albedo,
+            phase,
+        })
+    }
+
+    pub fn grid(&self) -> &Arc<DensityGrid> {
+        &self.grid
+    }
+    pub fn majorant(&self) -> &MajorantGrid {
+        &self.majorant
+    }
+    pub fn rho(&self) -> f32 {
+        self.rho
+    }
+    pub fn albedo(&self) -> f32 {
+        self.albedo
+    }
+    pub fn phase(&self) -> PhaseFunction {
+        self.phase
+    }
+    /// Where sigma_t can be non-zero.
+    pub fn bounds(&self) -> Bounds3 {
+        self.grid.support_bounds()
+    }
+
+    /// Extinction coefficient sigma_t(x) = rho * d(x).
+    #[inline]
+    pub fn sigma_t(&self, p: Vec3) -> f32 {
+        self.rho * self.grid.lookup(p)
+    }
+
+    /// The tracking loop: walks the majorant segments of `o + t d` (d unit length),
+    /// samples tentative collisions with the local majorant, and calls
+    /// `f(t, p, sigma_t(p), sigma_maj, rng)` at each one. `f` returns false to stop.
+    /// Returns true if the ray passed `t_max` or left the medium.
+    #[inline]
+    pub fn sample_t_maj<F>(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng, mut f: F) -> bool
+    where
+        F: FnMut(f32, Vec3, f32, f32, &mut Rng) -> bool,
+    {
+        for seg in self.majorant.segments(o, d, 0.0, t_max) {
+            let sigma_maj = self.rho * seg.max_density;
+            if sigma_maj <= 0.0 {
+                continue;
+            }
+            let mut t = seg.t_min;
+            loop {
+                t += sample_exponential(rng.uniform(), sigma_maj);
+                if t >= seg.t_max {
+                    break;
+                }
+                let p = o + d * t;
+                let sigma_t = self.sigma_t(p);
+                debug_assert!(
+                    sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6,
+                    "majorant {sigma_maj} < sigma_t {sigma_t}"
+                );
+                if !f(t, p, sigma_t, sigma_maj, rng) {
+                    return false;
+                }
+            }
+        }
+        true
+    }
+
+    /// Free-flight sampling by delta tracking: the distance to the next real
+    /// collision, distributed as sigma_t(t) T(t).
+    #[inline]
+    pub fn sample_free_flight(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> FreeFlight {
+        let mut hit = FreeFlight::Escaped;
+        self.sample_t_maj(o, d, t_max, rng, |t, _p, sigma_t, sigma_maj, rng| {
+            if rng.uniform() * sigma_maj < sigma_t {
+                hit = FreeFlight::Collision { t };
+                false
+            } else {
+                true
+            }
+        });
+        hit
+    }
+
+    /// Transmittance estimate by ratio tracking (Novak et al. 2014), with Russian
+    /// roulette once the running product falls below a threshold. Unbiased.
+    #[inline]
+    pub fn transmittance_ratio(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> f32 {
+        let mut tr = 1.0f32;
+        self.sample_t_maj(o, d, t_max, rng, |_t, _p, sigma_t, sigma_maj, rng| {
+            tr *= 1.0 - sigma_t / sigma_maj;
+            if tr < RATIO_TRACKING_RR_THRESHOLD {
+                if rng.uniform() < 0.5 {
+                    tr = 0.0;
+                    return false;
+                }
+                tr *= 2.0;
+            }
+            true
+        });
+        tr
+    }
+
+    /// Transmittance estimate by delta tracking: 1 if the free flight escapes, else 0.
+    #[inline]
+    pub fn transmittance_delta(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> f32 {
+        match self.sample_free_flight(o, d, t_max, rng) {
+            FreeFlight::Escaped => 1.0,
+            FreeFlight::Collision { .. } => 0.0,
+        }
+    }
+
+    /// Deterministic optical depth tau = integral of sigma_t along `o + t d`, t in
+    /// [0, t_max], by the midpoint rule with steps of at most `step` world units.
+    /// Empty majorant cells are skipped. Stops early once tau exceeds `tau_stop`
+    /// (pass `f32::INFINITY` for the full integral).
+    pub fn optical_depth(&self, o: Vec3, d: Vec3, t_max: f32, step: f32, tau_stop: f32) -> f32 {
+        debug_assert!(step > 0.0);
+        let mut tau = 0.0f64;
+        for seg in self.majorant.segments(o, d, 0.0, t_max) {
+            if seg.max_density <= 0.0 {
+                continue;
+            }
+            let len = seg.t_max - seg.t_min;
+            if len <= 0.0 {
+                continue;
+            }
+            let n = (len / step).ceil().max(1.0) as u32;
+            let h = len / n as f32;
+            let mut sum = 0.0f32;
+            for i in 0..n {
+                sum += self.grid.lookup(o + d * (seg.t_min + (i as f32 + 0.5) * h));
+            }
+            tau += (sum * h * self.rho) as f64;
+            if tau as f32 > tau_stop {
+                break;
+            }
+        }
+        tau as f32
+    }
+
+    /// Distance from `o` along `d` to where the ray leaves the medium's support, or
+    /// 0 if it starts outside and misses.
+    pub fn exit_distance(&self, o: Vec3, d: Vec3) -> f32 {
+        self.bounds()
+            .intersect(o, d.recip(), 0.0, f32::INFINITY)
+            .map(|(_, t1)| t1)
+            .unwrap_or(0.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn random_grid(n: u32, seed: u64) -> DensityGrid {
+        let mut rng = Rng::new(seed, 0, 0);
+        let data: Vec<f32> = (0..n * n * n)
+            .map(|_| {
+                if rng.uniform() < 0.3 {
+                    0.0
+                } else {
+                    rng.uniform()
+                }
+            })
+            .collect();
+        DensityGrid::from_bounds(
+            UVec3::splat(n),
+            data,
+            Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)),
+        )
+        .unwrap()
+    }
+
+    /// The majorant bounds the interpolated density everywhere, including the
+    /// trilinear footprint across cell borders and the half-voxel taper outside.
+    #[test]
+    fn majorant_bounds_density() {
+        let g = random_grid(13, 3);
+        for cells in [1, 2, 4, 5] {
+            let m = MajorantGrid::new(&g, cells);
+            let mut rng = Rng::new(9, cells as u64, 0);
+            for _ in 0..20_000 {
+                let p = m.bounds.min
+                    + Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * m.bounds.extent();
+                let c = ((p - m.bounds.min) * m.inv_cell_size)
+                    .floor()
+                    .as_ivec3()
+                    .clamp(IVec3::ZERO, m.dims.as_ivec3() - 1);
+                assert!(g.lookup(p) <= m.cell(c) + 1e-6, "cells={cells} p={p}");
+            }
+        }
+    }
+
+    /// The DDA covers [t0, t1] without gaps or overlaps and visits cells in order.
+    #[test]
+    fn dda_segments_tile_the_ray() {
+        let g = random_grid(16, 5);
+        let m = MajorantGrid::new(&g, 4);
+        let mut rng = Rng::new(11, 0, 0);
+        for _ in 0..2000 {
+            let o = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 3.0 - 1.5;
+            let d = crate::sampling::sample_uniform_sphere(rng.uniform2());
+            let segs: Vec<_> = m.segments(o, d, 0.0, f32::INFINITY).collect();
+            let inv = d.recip();
+            match m.bounds.intersect(o, inv, 0.0, f32::INFINITY) {
+                None => assert!(segs.is_empty()),
+                Some((t0, t1)) => {
+                    assert!(!segs.is_empty());
+                    assert!((segs[0].t_min - t0).abs() < 1e-5);
+                    assert!(
+                        (segs.last().unwrap().t_max - t1).abs() < 1e-4,
+                        "{segs:?} {t1}"
+                    );
+                    for w in segs.windows(2) {
+                        assert_eq!(w[0].t_max, w[1].t_min);
+                    }
+                    for s in &segs {
+                        assert!(s.t_max >= s.t_min);
+                        // Midpoint density is bounded by the segment's majorant.
+                        let p = o + d * 0.5 * (s.t_min + s.t_max);
+                        assert!(g.lookup(p) <= s.max_density + 1e-6);
+                    }
+                }
+            }
+            // Axis-aligned rays (zero direction components) terminate too.
+            let axis = [Vec3::X, -Vec3::Y, Vec3::Z][(rng.uniform() * 3.0) as usize % 3];
+            assert!(m.segments(o * 0.2, axis, 0.0, f32::INFINITY).count() <= 20);
+        }
+    }
+
+    #[test]
+    fn rejects_bad_parameters() {
+        let g = Arc::new(random_grid(4, 1));
+        assert!(Medium::new(g.clone(), -1.0, 1.0, PhaseFunction::Isotropic).is_err());
+        assert!(Medium::new(g.clone(), f32::NAN, 1.0, PhaseFunction::Isotropic).is_err());
+        assert!(Medium::new(g.clone(), 10.0, 1.5, PhaseFunction::Isotropic).is_err());
+        assert!(Medium::new(g, 10.0, 1.0, PhaseFunction::Isotropic).is_ok());
+    }
+}

@@ -1,0 +1,25 @@
+//! The hook through which a learned model plugs into the renderer at bounce k.
+//!
+//! The engine knows nothing of the model's framework: anything that can estimate the
+//! in-scattered radiance at a point implements [`InScatterPredictor`].
+
+use crate::light::Sun;
+use crate::medium::Medium;
+use glam::Vec3;
+
+/// Predicts the total in-scattered radiance L_i(x -> omega) (thesis eq. 2.7 and the
+/// model target of eq. 5.5, single scattering at x included) at a point `x` inside
+/// `medium` lit by `sun`, for a sun of UNIT radiance; the integrator multiplies by the
+/// sun's radiance. `omega` points away from `x`, toward the previous path vertex (the
+/// direction the radiance leaves in).
+///
+/// Called from many render threads at once, once per predicted path: implementations
+/// must not allocate per call (keep per-thread scratch space instead).
+pub trait InScatterPredictor: Send + Sync {
+    fn predict(&self, medium: &Medium, sun: &Sun, x: Vec3, omega: Vec3) -> f32;
+
+    /// A short name for logs and reports.
+    fn name(&self) -> &str {
+        "predictor"
+    }
+}

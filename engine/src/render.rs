@@ -1,0 +1,163 @@
+//! Progressive rendering: one pass is one sample per pixel, rendered in parallel over
+//! tiles with rayon and then added to the film in pixel order, so an image depends only
+//! on (seed, pass, pixel), never on the thread count or scheduling.
+//!
+//! A pass checks its [`RenderControl`] between tiles and is abandoned (never
+//! half-added) when the generation moves on or a stop is requested, so it stops within
+//! the time of one tile. The film sits behind a lock that is only held while a
+//! finished pass is added, so other threads can take a snapshot at any time.
+
+use crate::film::Film;
+use crate::integrator::{Integrator, IntegratorError, PathSample, Scene};
+use crate::rng::Rng;
+use glam::Vec2;
+use rayon::prelude::*;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
+
+/// Edge length of a square tile, in pixels.
+pub const TILE_SIZE: u32 = 16;
+
+/// Shared between the thread that changes things and the threads that render: a
+/// generation counter that every scene change bumps, and a stop flag.
+#[derive(Debug, Default)]
+pub struct RenderControl {
+    generation: AtomicU64,
+    stop: AtomicBool,
+}
+
+impl RenderControl {
+    pub fn new() -> Self {
+        Self::default()
+    }
+    pub fn generation(&self) -> u64 {
+        self.generation.load(Ordering::Acquire)
+    }
+    /// Invalidates the pass under way; returns the new generation.
+    pub fn bump(&self) -> u64 {
+        self.generation.fetch_add(1, Ordering::AcqRel) + 1
+    }
+    pub fn request_stop(&self) {
+        self.stop.store(true, Ordering::Release);
+    }
+    pub fn clear_stop(&self) {
+        self.stop.store(false, Ordering::Release);
+    }
+    pub fn stop_requested(&self) -> bool {
+        self.stop.load(Ordering::Acquire)
+    }
+    /// True if a pass started in `generation` must stop.
+    #[inline]
+    pub fn should_abort(&self, generation: u64) -> bool {
+        self.stop_requested() || self.generation() != generation
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PassOutcome {
+    Completed,
+    Cancelled,
+}
+
+/// Renders passes of one scene into one film.
+pub struct Renderer {
+    scene: Arc<Scene>,
+    integrator: Integrator,
+    film: Arc<RwLock<Film>>,
+    tiles: Vec<(u32, u32, u32, u32)>,
+}
+
+impl Renderer {
+    pub fn new(scene: Arc<Scene>, integrator: Integrator) -> Result<Self, IntegratorError> {
+        integrator.check_scene(&scene)?;
+        let (w, h) = (scene.camera.width(), scene.camera.height());
+        let mut tiles = Vec::new();
+        for y0 in (0..h).step_by(TILE_SIZE as usize) {
+            for x0 in (0..w).step_by(TILE_SIZE as usize) {
+                tiles.push((x0, y0, (x0 + TILE_SIZE).min(w), (y0 + TILE_SIZE).min(h)));
+            }
+        }
+        Ok(Renderer {
+            film: Arc::new(RwLock::new(Film::new(w, h))),
+            scene,
+            integrator,
+            tiles,
+        })
+    }
+
+    pub fn scene(&self) -> &Arc<Scene> {
+        &self.scene
+    }
+    pub fn integrator(&self) -> &Integrator {
+        &self.integrator
+    }
+
+    /// The film, for readers on other threads.
+    pub fn film_handle(&self) -> Arc<RwLock<Film>> {
+        self.film.clone()
+    }
+
+    /// A copy of the current buffers.
+    pub fn snapshot(&self) -> Film {
+        self.film.read().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+
+    pub fn spp(&self) -> u32 {
+        self.film.read().unwrap_or_else(|e| e.into_inner()).spp()
+    }
+
+    /// Renders the next pass (one sample per pixel) unless `control` says stop.
+    pub fn render_pass(&mut self, control: &RenderControl, generation: u64) -> PassOutcome {
+        let pass = self.spp();
+        let Some(samples) = self.render_pass_samples(pass, control, generation) else {
+            return PassOutcome::Cancelled;
+        };
+        self.film
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .add_pass(&samples);
+        PassOutcome::Completed
+    }
+
+    /// Renders pass number `pass` and returns its samples in pixel order, or None if
+    /// cancelled.
+    pub fn render_pass_samples(
+        &self,
+        pass: u32,
+        control: &RenderControl,
+        generation: u64,
+    ) -> Option<Vec<PathSample>> {
+        let camera = &self.scene.camera;
+        let (w, h) = (camera.width(), camera.height());
+        let seed = self.integrator.settings().seed;
+        let tiles: Vec<Vec<PathSample>> = self
+            .tiles
+            .par_iter()
+            .map(|&(x0, y0, x1, y1)| {
+                if control.should_abort(generation) {
+                    return None;
+                }
+                let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let pixel = y as u64 * w as u64 + x as u64;
+                        let mut rng = Rng::new(seed, pass as u64, pixel);
+                        let (o, d) =
+                            camera.generate_ray(x, y, Vec2::new(rng.uniform(), rng.uniform()));
+                        out.push(self.integrator.trace(&self.scene, o, d, &mut rng));
+                    }
+                }
+                Some(out)
+            })
+            .collect::<Option<Vec<_>>>()?;
+        let mut samples = vec![PathSample::default(); (w * h) as usize];
+        for (&(x0, y0, x1, _), tile) in self.tiles.iter().zip(&tiles) {
+            let tw = (x1 - x0) as usize;
+            for (row, chunk) in tile.chunks(tw).enumerate() {
+                let start = (y0 as usize + row) * w as usize + x0 as usize;
+                samples[start..start + tw].copy_from_slice(chunk);
+            }
+        }
+        Some(samples)
+    }
+}

@@ -1,0 +1,107 @@
+//! Sampling routines as pure functions of uniform numbers, with sample, pdf and
+//! inverse side by side (the pbrt-v4 `util/sampling.h` layout).
+
+use glam::{Vec2, Vec3};
+use std::f32::consts::PI;
+
+pub const INV_4PI: f32 = 1.0 / (4.0 * PI);
+
+/// Exponential distance with rate `sigma`: pdf(t) = sigma exp(-sigma t).
+#[inline]
+pub fn sample_exponential(u: f32, sigma: f32) -> f32 {
+    // 1 - u is in (0, 1], so the log is finite.
+    -(1.0 - u).ln() / sigma
+}
+
+#[inline]
+pub fn exponential_pdf(t: f32, sigma: f32) -> f32 {
+    sigma * (-sigma * t).exp()
+}
+
+#[inline]
+pub fn invert_exponential_sample(t: f32, sigma: f32) -> f32 {
+    1.0 - (-sigma * t).exp()
+}
+
+/// Uniform direction on the unit sphere.
+#[inline]
+pub fn sample_uniform_sphere(u: Vec2) -> Vec3 {
+    let z = 1.0 - 2.0 * u.x;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * PI * u.y;
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+#[inline]
+pub fn uniform_sphere_pdf() -> f32 {
+    INV_4PI
+}
+
+/// Uniform direction in the cone of half-angle `acos(cos_max)` around +z.
+#[inline]
+pub fn sample_uniform_cone(u: Vec2, cos_max: f32) -> Vec3 {
+    let cos_t = 1.0 - u.x * (1.0 - cos_max);
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    let phi = 2.0 * PI * u.y;
+    Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t)
+}
+
+#[inline]
+pub fn uniform_cone_pdf(cos_max: f32) -> f32 {
+    1.0 / (2.0 * PI * (1.0 - cos_max))
+}
+
+/// An orthonormal basis (t, b, n) around unit `n` (Duff et al. 2017, branchless).
+#[inline]
+pub fn coordinate_system(n: Vec3) -> (Vec3, Vec3) {
+    let sign = 1.0f32.copysign(n.z);
+    let a = -1.0 / (sign + n.z);
+    let b = n.x * n.y * a;
+    (
+        Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x),
+        Vec3::new(b, sign + n.y * n.y * a, -n.y),
+    )
+}
+
+/// Maps a direction given in the local frame around `n` (local +z = n) to world space.
+#[inline]
+pub fn local_to_world(local: Vec3, n: Vec3) -> Vec3 {
+    let (t, b) = coordinate_system(n);
+    t * local.x + b * local.y + n * local.z
+}
+
+/// A direction with the given cosine to `axis` and azimuth `phi` about it.
+#[inline]
+pub fn spherical_direction(cos_t: f32, phi: f32, axis: Vec3) -> Vec3 {
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    local_to_world(Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t), axis)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn exponential_inverse_roundtrip() {
+        for &u in &[0.0f32, 0.1, 0.5, 0.9, 0.999] {
+            let t = sample_exponential(u, 3.0);
+            assert!((invert_exponential_sample(t, 3.0) - u).abs() < 1e-5);
+        }
+        assert!(sample_exponential(1.0 - f32::EPSILON, 1.0).is_finite());
+    }
+
+    #[test]
+    fn frames_are_orthonormal() {
+        for n in [
+            Vec3::Z,
+            -Vec3::Z,
+            Vec3::X,
+            Vec3::new(0.3, -0.5, 0.8).normalize(),
+        ] {
+            let (t, b) = coordinate_system(n);
+            assert!(t.dot(b).abs() < 1e-6 && t.dot(n).abs() < 1e-6 && b.dot(n).abs() < 1e-6);
+            assert!((t.length() - 1.0).abs() < 1e-6 && (b.length() - 1.0).abs() < 1e-6);
+            assert!((t.cross(b) - n).length() < 1e-5, "right-handed frame");
+        }
+    }
+}
