@@ -358,6 +358,8 @@ def main(argv=None):
         "speed_ratio": (nimbus_sps / sps) if nimbus_sps else None,
     }
 
+    result.update({k: None for k in ("mean_rel_diff", "rel_bias_16x", "rel_bias_4x",
+                                     "corr", "corr_flip_x", "corr_flip_y")})
     if not args.no_compare:
         nimbus = np.load(os.path.join(d, nim.get("image", "nimbus_full.npy")))
         nimbus = nimbus.astype(np.float32)

@@ -1,1 +1,8 @@
-pub fn x() {}
+//! The `nimbus` application: scene files, built-in clouds, file output and the
+//! command line. `main.rs` is a thin wrapper so tests reach everything here.
+
+pub mod cli;
+pub mod cloud;
+pub mod output;
+pub mod progressive;
+pub mod scene;

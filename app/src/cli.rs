@@ -1,0 +1,267 @@
+//! The `nimbus` command line: headless versions of what the window does.
+
+use crate::output::{self, ToneMap};
+use crate::progressive::render_spp;
+use crate::scene::SceneFile;
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use engine::{Buffer, RenderControl};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+#[derive(Parser, Debug)]
+#[command(name = "nimbus", version, about = "Author and render clouds: path traced low orders, learned high orders")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Option<Command>,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Render a scene file to a multi-layer EXR (and optionally a PNG).
+    Render(RenderArgs),
+    /// Benchmarks.
+    Bench {
+        #[command(subcommand)]
+        which: BenchCommand,
+    },
+}
+
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    /// Scene file (TOML).
+    pub scene: PathBuf,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 64)]
+    pub spp: u32,
+    /// Override the scene's k (first order of the high-order buffer).
+    #[arg(long)]
+    pub k: Option<u32>,
+    /// Override the scene's seed.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Override the resolution: WIDTHxHEIGHT.
+    #[arg(long)]
+    pub size: Option<String>,
+    /// Output EXR (layers full, direct, low, high, variance).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also write a tone-mapped PNG of the full image.
+    #[arg(long)]
+    pub png: Option<PathBuf>,
+    /// Exposure in stops for the PNG.
+    #[arg(long, default_value_t = 0.0)]
+    pub exposure: f32,
+    /// Tone curve for the PNG: filmic or clamp.
+    #[arg(long, default_value = "filmic")]
+    pub tonemap: String,
+    /// Worker threads (default: all cores). The image does not depend on it.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum BenchCommand {
+    /// Samples per second on the fixed benchmark scene (128^3 multi-lobe cloud,
+    /// rho 40, albedo 1, g 0.85, toplit, 256x256, full transport).
+    Render(BenchRenderArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct BenchRenderArgs {
+    #[arg(long, default_value_t = 16)]
+    pub spp: u32,
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Majorant cell edge (voxels) of the measured configuration.
+    #[arg(long, default_value_t = engine::medium::MajorantGrid::DEFAULT_CELL_VOXELS)]
+    pub majorant_cells: u32,
+    /// Also measure these majorant cell edges, as ratios against the first.
+    #[arg(long, value_delimiter = ',')]
+    pub compare_cells: Vec<u32>,
+    /// Write the cloud (Mitsuba .vol), scene.json and nimbus_full.npy here for
+    /// bench/mitsuba_compare.py.
+    #[arg(long)]
+    pub mitsuba_dir: Option<PathBuf>,
+}
+
+/// Runs the CLI; returns the process exit code.
+pub fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        None => {
+            use clap::CommandFactory;
+            Cli::command().print_help()?;
+            println!("\n\nThe interactive window is not built yet (issue 8); use the subcommands above.");
+            Ok(())
+        }
+        Some(Command::Render(args)) => render(args),
+        Some(Command::Bench { which: BenchCommand::Render(args) }) => bench_render(args),
+    }
+}
+
+fn init_threads(threads: Option<usize>) -> Result<usize> {
+    if let Some(n) = threads {
+        if n == 0 {
+            bail!("--threads must be at least 1");
+        }
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .thread_name(|i| format!("nimbus-render-{i}"))
+            .build_global()
+            .context("cannot start the render threads")?;
+    }
+    Ok(rayon::current_num_threads())
+}
+
+fn stop_on_ctrl_c(control: &Arc<RenderControl>) {
+    let c = control.clone();
+    // If a handler is already installed (tests), keep going without one.
+    let _ = ctrlc::set_handler(move || {
+        eprintln!("\nstopping after the current pass; the samples so far are kept");
+        c.request_stop();
+    });
+}
+
+fn progress_bar(len: u64, quiet: bool) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(len);
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} spp  ETA {eta}  {msg}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    bar
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32)> {
+    let (w, h) = s.split_once('x').with_context(|| format!("--size {s}: expected WIDTHxHEIGHT, e.g. 512x512"))?;
+    Ok((w.trim().parse().context("--size width")?, h.trim().parse().context("--size height")?))
+}
+
+fn render(args: RenderArgs) -> Result<()> {
+    let threads = init_threads(args.threads)?;
+    let tone = ToneMap::from_name(&args.tonemap).with_context(|| format!("--tonemap {}: choose filmic or clamp", args.tonemap))?;
+    if args.spp == 0 {
+        bail!("--spp must be at least 1");
+    }
+    let mut file = SceneFile::load(&args.scene)?;
+    if let Some(k) = args.k {
+        file.k = k;
+    }
+    if let Some(seed) = args.seed {
+        file.seed = seed;
+    }
+    if let Some(size) = &args.size {
+        (file.camera.width, file.camera.height) = parse_size(size)?;
+    }
+    file.validate()?;
+    let scene = Arc::new(file.build_scene(None)?);
+    let integrator = file.integrator()?;
+    let control = Arc::new(RenderControl::new());
+    stop_on_ctrl_c(&control);
+    let bar = progress_bar(args.spp as u64, args.quiet);
+    let outcome = render_spp(scene.clone(), integrator, args.spp, &control, |done| bar.set_position(done as u64))?;
+    bar.finish_and_clear();
+    let film = &outcome.film;
+    if film.spp() == 0 {
+        bail!("stopped before the first pass finished: nothing written");
+    }
+    write_outputs(film, &args.out, args.png.as_deref(), tone, args.exposure)?;
+    if film.rejected_samples() > 0 {
+        eprintln!("warning: {} non-finite samples were dropped", film.rejected_samples());
+    }
+    let summary = serde_json::json!({
+        "spp": film.spp(),
+        "seconds": outcome.render_secs,
+        "samples_per_second": outcome.samples_per_sec(),
+        "width": film.width(),
+        "height": film.height(),
+        "threads": threads,
+        "stopped_early": outcome.stopped,
+        "out": args.out,
+    });
+    println!("{summary}");
+    Ok(())
+}
+
+/// EXR with every buffer, and the PNG if asked.
+pub fn write_outputs(film: &engine::Film, exr: &Path, png: Option<&Path>, tone: ToneMap, exposure: f32) -> Result<()> {
+    output::write_exr(exr, film.width(), film.height(), &output::film_layers(film))?;
+    if let Some(png) = png {
+        output::write_png(png, film.width(), film.height(), &film.mean(Buffer::Full), tone, exposure)?;
+    }
+    Ok(())
+}
+
+/// The fixed benchmark scene of `nimbus bench render`.
+pub fn bench_scene_file() -> SceneFile {
+    let mut s = SceneFile::from_toml_str("[grid]\nbuiltin = \"cumulus\"\nresolution = 128\n", "bench").expect("valid");
+    s.medium.rho = 40.0;
+    s.medium.albedo = 1.0;
+    s.medium.g = 0.85;
+    s.camera.preset = Some("toplit".into());
+    s.camera.width = 256;
+    s.camera.height = 256;
+    s.seed = 1;
+    s
+}
+
+fn bench_render(args: BenchRenderArgs) -> Result<()> {
+    let threads = init_threads(args.threads)?;
+    let file = bench_scene_file();
+    let grid = Arc::new(file.build_grid()?);
+    let control = Arc::new(RenderControl::new());
+    stop_on_ctrl_c(&control);
+    let mut cells = vec![args.majorant_cells];
+    cells.extend(args.compare_cells.iter().copied().filter(|c| *c != args.majorant_cells));
+    println!("bench render: cumulus 128^3, rho 40, albedo 1, HG g 0.85, toplit, 256x256, {} spp, {threads} threads", args.spp);
+    let mut base_rate = None;
+    let mut results = Vec::new();
+    for &c in &cells {
+        let base = file.build_scene(Some(grid.clone()))?;
+        let medium = engine::Medium::with_majorant_cells(grid.clone(), file.medium.rho, file.medium.albedo, file.phase(), c)?;
+        let scene = Arc::new(engine::Scene { medium, ..base });
+        let bar = progress_bar(args.spp as u64, false);
+        let outcome = render_spp(scene.clone(), file.integrator()?, args.spp, &control, |d| bar.set_position(d as u64))?;
+        bar.finish_and_clear();
+        if outcome.stopped {
+            bail!("stopped");
+        }
+        let rate = outcome.samples_per_sec();
+        let ratio = rate / *base_rate.get_or_insert(rate);
+        println!("  majorant cells {c:>2} voxels: {:>8.3} Msamples/s  ({:.3}x)  {:.2} s", rate / 1e6, ratio, outcome.render_secs);
+        results.push(serde_json::json!({"majorant_cells": c, "samples_per_second": rate, "seconds": outcome.render_secs, "ratio": ratio}));
+        if let (Some(dir), true) = (&args.mitsuba_dir, c == args.majorant_cells) {
+            write_mitsuba_bundle(dir, &scene, &outcome, threads)?;
+        }
+    }
+    println!("{}", serde_json::json!({"bench": "render", "spp": args.spp, "threads": threads, "results": results}));
+    Ok(())
+}
+
+fn write_mitsuba_bundle(dir: &Path, scene: &engine::Scene, outcome: &crate::progressive::RenderOutcome, threads: usize) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    output::write_bytes_atomically(&dir.join("cloud.vol"), &output::mitsuba_vol_bytes(scene.medium.grid()))?;
+    let film = &outcome.film;
+    output::write_npy_image(&dir.join("nimbus_full.npy"), film.width(), film.height(), &film.mean(Buffer::Full))?;
+    let cam = &scene.camera;
+    let sun = scene.sun.expect("bench scene has a sun");
+    let g = scene.medium.phase().g();
+    let json = serde_json::json!({
+        "resolution": [cam.width(), cam.height()],
+        "spp": film.spp(),
+        "camera": {"origin": cam.position().to_array(), "target": cam.target().to_array(), "up": cam.up().to_array(), "fov_y_deg": cam.fov_y_deg()},
+        "sun": {"direction": sun.direction().to_array(), "irradiance": sun.radiance().to_array()},
+        "medium": {"rho": scene.medium.rho(), "albedo": scene.medium.albedo(), "g": g},
+        "nimbus": {"spp": film.spp(), "seconds": outcome.render_secs, "samples_per_second": outcome.samples_per_sec(), "threads": threads, "image": "nimbus_full.npy"},
+    });
+    output::write_bytes_atomically(&dir.join("scene.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
+    eprintln!("wrote cloud.vol, scene.json and nimbus_full.npy to {}", dir.display());
+    Ok(())
+}

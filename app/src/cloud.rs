@@ -1,0 +1,110 @@
+//! Built-in analytic clouds, so scenes and tests work before (and without) the
+//! procedural modeler: a multi-lobe cumulus and a homogeneous sphere, both inside the
+//! default cloud box [-0.5, 0.5]^3 (CONVENTIONS.md).
+
+use engine::{Bounds3, DensityGrid};
+use glam::{UVec3, Vec3};
+
+/// The built-in clouds a scene can name with `grid.builtin`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Builtin {
+    /// Ten overlapping lobes on a flattened base: strongly concave, homogeneous
+    /// interior with a soft boundary; diameter about 0.9.
+    Cumulus,
+    /// A homogeneous sphere of radius 0.45 with a hard boundary (up to voxelization).
+    Sphere,
+}
+
+impl Builtin {
+    pub const NAMES: [&'static str; 2] = ["cumulus", "sphere"];
+
+    pub fn from_name(name: &str) -> Option<Builtin> {
+        match name {
+            "cumulus" => Some(Builtin::Cumulus),
+            "sphere" => Some(Builtin::Sphere),
+            _ => None,
+        }
+    }
+
+    pub fn density(&self, p: Vec3) -> f32 {
+        match self {
+            Builtin::Cumulus => cumulus_density(p),
+            Builtin::Sphere => {
+                if p.length() <= 0.45 {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
+        }
+    }
+
+    /// The cloud voxelized at `resolution`^3 over [-0.5, 0.5]^3.
+    pub fn grid(&self, resolution: u32) -> DensityGrid {
+        DensityGrid::from_fn(UVec3::splat(resolution), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)), |p| self.density(p))
+            .expect("built-in clouds are finite and non-negative")
+    }
+}
+
+/// Lobes (centre, radius) of the built-in cumulus.
+const LOBES: [(f32, f32, f32, f32); 10] = [
+    (0.00, -0.10, 0.00, 0.28),
+    (-0.22, -0.15, 0.05, 0.20),
+    (0.24, -0.14, -0.04, 0.21),
+    (0.05, 0.12, 0.02, 0.22),
+    (-0.10, 0.20, -0.08, 0.15),
+    (0.18, 0.08, 0.10, 0.16),
+    (-0.30, -0.05, -0.10, 0.14),
+    (0.32, -0.20, 0.12, 0.12),
+    (0.00, -0.15, 0.25, 0.16),
+    (0.05, -0.12, -0.24, 0.17),
+];
+
+/// Width of the density falloff inside the boundary (world units).
+const FALLOFF: f32 = 0.04;
+
+fn cumulus_density(p: Vec3) -> f32 {
+    // Smooth union of the lobes' signed distances (polynomial smooth minimum).
+    let mut d = f32::INFINITY;
+    for &(x, y, z, r) in &LOBES {
+        let di = (p - Vec3::new(x, y, z)).length() - r;
+        d = smooth_min(d, di, 0.06);
+    }
+    // Flattened base.
+    d = d.max(-(p.y + 0.3));
+    smoothstep(0.0, FALLOFF, -d)
+}
+
+fn smooth_min(a: f32, b: f32, k: f32) -> f32 {
+    if !a.is_finite() {
+        return b;
+    }
+    let h = (0.5 + 0.5 * (b - a) / k).clamp(0.0, 1.0);
+    b + (a - b) * h - k * h * (1.0 - h)
+}
+
+fn smoothstep(e0: f32, e1: f32, x: f32) -> f32 {
+    let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cumulus_fits_the_box_and_is_dense_inside() {
+        let g = Builtin::Cumulus.grid(32);
+        assert_eq!(g.max_value(), 1.0);
+        assert!(g.lookup(Vec3::new(0.0, -0.1, 0.0)) > 0.99);
+        // Nothing touches the box faces.
+        let n = 32;
+        for a in 0..n {
+            for b in 0..n {
+                for v in [g.voxel(0, a, b), g.voxel(n - 1, a, b), g.voxel(a, 0, b), g.voxel(a, n - 1, b), g.voxel(a, b, 0), g.voxel(a, b, n - 1)] {
+                    assert_eq!(v, 0.0);
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,479 @@
+//! Scene files (TOML): what to render and how. Unknown keys and out-of-range values
+//! are errors that name the key and the allowed range.
+//!
+//! ```toml
+//! seed = 1                 # random streams derive from (seed, pass, pixel)
+//! k = 2                    # first scattering order of the high-order buffer
+//! [grid]
+//! builtin = "cumulus"      # cumulus | sphere
+//! resolution = 128
+//! [medium]
+//! rho = 40.0               # density scale: sigma_t = rho * density (1 / world unit)
+//! albedo = 1.0
+//! phase = "hg"             # isotropic | hg | rayleigh | hazy | murky
+//! g = 0.85
+//! [sun]
+//! direction = [0, -1, 0]   # direction the light travels
+//! radiance = 1.0           # or [r, g, b]
+//! [camera]
+//! preset = "toplit"        # toplit | backlit | frontlit, or position/target/up
+//! width = 256
+//! height = 256
+//! ```
+
+use crate::cloud::Builtin;
+use engine::{Camera, DensityGrid, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene, Sky, Sun};
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use std::sync::Arc;
+
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    #[error("cannot read scene file {path}: {source}")]
+    Io { path: String, source: std::io::Error },
+    #[error("scene file {path}: {message}")]
+    Parse { path: String, message: String },
+    #[error("{key} = {value} is out of range: {range}")]
+    Range { key: &'static str, value: String, range: &'static str },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+fn range_err(key: &'static str, value: impl std::fmt::Display, range: &'static str) -> SceneError {
+    SceneError::Range { key, value: value.to_string(), range }
+}
+
+/// Radiance given as one number (grey) or as [r, g, b].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Rgb {
+    Grey(f32),
+    Rgb([f32; 3]),
+}
+
+impl Rgb {
+    pub fn to_vec3(self) -> Vec3 {
+        match self {
+            Rgb::Grey(v) => Vec3::splat(v),
+            Rgb::Rgb(c) => Vec3::from_array(c),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneFile {
+    /// Scene seed (any u64). Default 0.
+    #[serde(default)]
+    pub seed: u64,
+    /// First order of the high-order buffer, 1 ..= 64. Default 1.
+    #[serde(default = "default_k")]
+    pub k: u32,
+    /// Highest scattering order rendered, >= 1; absent = all.
+    #[serde(default)]
+    pub max_order: Option<u32>,
+    pub grid: GridDesc,
+    #[serde(default)]
+    pub medium: MediumDesc,
+    #[serde(default)]
+    pub sun: SunDesc,
+    #[serde(default)]
+    pub sky: SkyDesc,
+    #[serde(default)]
+    pub camera: CameraDesc,
+    #[serde(default)]
+    pub render: RenderDesc,
+}
+
+fn default_k() -> u32 {
+    1
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GridDesc {
+    /// A built-in analytic cloud: "cumulus" or "sphere".
+    pub builtin: Option<String>,
+    /// Voxels per axis for built-in clouds, 2 ..= 1024. Default 128.
+    #[serde(default = "default_resolution")]
+    pub resolution: u32,
+}
+
+fn default_resolution() -> u32 {
+    128
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MediumDesc {
+    /// Density scale, 0 ..= 10000 per world unit. Default 40.
+    pub rho: f32,
+    /// Single-scattering albedo, 0 ..= 1. Default 1.
+    pub albedo: f32,
+    /// isotropic | hg | rayleigh | hazy | murky. Default hg.
+    pub phase: String,
+    /// Henyey-Greenstein asymmetry, -0.99 ..= 0.99 (hg only). Default 0.85.
+    pub g: f32,
+}
+
+impl Default for MediumDesc {
+    fn default() -> Self {
+        MediumDesc { rho: 40.0, albedo: 1.0, phase: "hg".into(), g: 0.85 }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SunDesc {
+    /// Direction the light travels (need not be normalized). Default straight down.
+    pub direction: [f32; 3],
+    /// Irradiance perpendicular to the sun, >= 0 (grey or [r, g, b]). Default 1.
+    pub radiance: Rgb,
+    /// Angular radius of a soft sun disk, 0 ..= 20 degrees. Default 0 (delta light).
+    pub angular_radius_deg: f32,
+}
+
+impl Default for SunDesc {
+    fn default() -> Self {
+        SunDesc { direction: [0.0, -1.0, 0.0], radiance: Rgb::Grey(1.0), angular_radius_deg: 0.0 }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SkyDesc {
+    /// Constant environment radiance, >= 0. Default 0 (black).
+    pub radiance: Rgb,
+}
+
+impl Default for SkyDesc {
+    fn default() -> Self {
+        SkyDesc { radiance: Rgb::Grey(0.0) }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraDesc {
+    /// toplit | backlit | frontlit: the thesis's lighting configurations relative to
+    /// the sun, looking at `target` from `distance`. Ignored when `position` is set.
+    pub preset: Option<String>,
+    pub position: Option<[f32; 3]>,
+    /// Default the origin.
+    pub target: [f32; 3],
+    /// Default +y.
+    pub up: [f32; 3],
+    /// Distance from target for presets, > 0. Default 2.8.
+    pub distance: f32,
+    /// Vertical field of view, 1 ..= 170 degrees. Default 30.
+    pub fov_y_deg: f32,
+    /// Pixels, 1 ..= 16384. Default 256 x 256.
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Default for CameraDesc {
+    fn default() -> Self {
+        CameraDesc {
+            preset: None,
+            position: None,
+            target: [0.0; 3],
+            up: [0.0, 1.0, 0.0],
+            distance: 2.8,
+            fov_y_deg: 30.0,
+            width: 256,
+            height: 256,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RenderDesc {
+    /// reference | predict. Default reference.
+    pub mode: String,
+    /// Prediction probability for mode = "predict", (0, 1]. Default 0.25.
+    pub p: f32,
+}
+
+impl Default for RenderDesc {
+    fn default() -> Self {
+        RenderDesc { mode: "reference".into(), p: 0.25 }
+    }
+}
+
+/// The lighting configurations of the evaluation (thesis 5.5; CONVENTIONS.md).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CameraPreset {
+    /// Viewing direction perpendicular to the light.
+    Toplit,
+    /// Looking toward the sun through the cloud: c = -omega_L.
+    Backlit,
+    /// Sun behind the camera: c = omega_L.
+    Frontlit,
+}
+
+impl CameraPreset {
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "toplit" => Some(CameraPreset::Toplit),
+            "backlit" => Some(CameraPreset::Backlit),
+            "frontlit" => Some(CameraPreset::Frontlit),
+            _ => None,
+        }
+    }
+
+    /// Camera viewing direction for light travelling along `omega_l` (unit).
+    pub fn view_direction(&self, omega_l: Vec3) -> Vec3 {
+        match self {
+            CameraPreset::Backlit => -omega_l,
+            CameraPreset::Frontlit => omega_l,
+            CameraPreset::Toplit => {
+                // The horizontal direction -z made perpendicular to the light.
+                let c = Vec3::NEG_Z - omega_l * omega_l.dot(Vec3::NEG_Z);
+                c.try_normalize().unwrap_or(Vec3::X - omega_l * omega_l.x).normalize()
+            }
+        }
+    }
+}
+
+/// An up vector not parallel to `view`: +y, or -z when looking (nearly) vertically.
+pub fn default_up(view: Vec3) -> Vec3 {
+    if view.cross(Vec3::Y).length() > 1e-3 { Vec3::Y } else { Vec3::NEG_Z }
+}
+
+impl SceneFile {
+    pub fn from_toml_str(text: &str, origin: &str) -> Result<Self, SceneError> {
+        toml::from_str(text).map_err(|e| SceneError::Parse { path: origin.to_string(), message: e.to_string().trim().to_string() })
+    }
+
+    pub fn load(path: &Path) -> Result<Self, SceneError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io { path: path.display().to_string(), source })?;
+        Self::from_toml_str(&text, &path.display().to_string())
+    }
+
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("scene serializes")
+    }
+
+    /// Checks every value against its documented range.
+    pub fn validate(&self) -> Result<(), SceneError> {
+        if !(1..=64).contains(&self.k) {
+            return Err(range_err("k", self.k, "1 ..= 64"));
+        }
+        if let Some(m) = self.max_order {
+            if m < 1 {
+                return Err(range_err("max_order", m, ">= 1"));
+            }
+        }
+        match &self.grid.builtin {
+            None => return Err(SceneError::Invalid("grid: no source given; set grid.builtin to one of: cumulus, sphere".into())),
+            Some(name) if Builtin::from_name(name).is_none() => {
+                return Err(SceneError::Invalid(format!(
+                    "grid.builtin = \"{name}\" is not a built-in cloud; choose one of: {}",
+                    Builtin::NAMES.join(", ")
+                )));
+            }
+            _ => {}
+        }
+        if !(2..=1024).contains(&self.grid.resolution) {
+            return Err(range_err("grid.resolution", self.grid.resolution, "2 ..= 1024"));
+        }
+        let m = &self.medium;
+        if !(m.rho.is_finite() && (0.0..=10000.0).contains(&m.rho)) {
+            return Err(range_err("medium.rho", m.rho, "0 ..= 10000"));
+        }
+        if !(0.0..=1.0).contains(&m.albedo) {
+            return Err(range_err("medium.albedo", m.albedo, "0 ..= 1"));
+        }
+        if !(-0.99..=0.99).contains(&m.g) {
+            return Err(range_err("medium.g", m.g, "-0.99 ..= 0.99"));
+        }
+        if !["isotropic", "hg", "rayleigh", "hazy", "murky"].contains(&m.phase.as_str()) {
+            return Err(SceneError::Invalid(format!(
+                "medium.phase = \"{}\" is not a phase function; choose one of: isotropic, hg, rayleigh, hazy, murky",
+                m.phase
+            )));
+        }
+        let s = &self.sun;
+        if Vec3::from_array(s.direction).try_normalize().is_none() {
+            return Err(range_err("sun.direction", format!("{:?}", s.direction), "a non-zero finite vector"));
+        }
+        let rad = s.radiance.to_vec3();
+        if !(rad.is_finite() && rad.min_element() >= 0.0) {
+            return Err(range_err("sun.radiance", format!("{rad}"), ">= 0 and finite"));
+        }
+        if !(0.0..=20.0).contains(&s.angular_radius_deg) {
+            return Err(range_err("sun.angular_radius_deg", s.angular_radius_deg, "0 ..= 20"));
+        }
+        let sky = self.sky.radiance.to_vec3();
+        if !(sky.is_finite() && sky.min_element() >= 0.0) {
+            return Err(range_err("sky.radiance", format!("{sky}"), ">= 0 and finite"));
+        }
+        let c = &self.camera;
+        if let Some(p) = &c.preset {
+            if CameraPreset::from_name(p).is_none() {
+                return Err(SceneError::Invalid(format!("camera.preset = \"{p}\" is unknown; choose one of: toplit, backlit, frontlit")));
+            }
+        }
+        if !(c.distance.is_finite() && c.distance > 0.0) {
+            return Err(range_err("camera.distance", c.distance, "> 0"));
+        }
+        if !(1.0..=170.0).contains(&c.fov_y_deg) {
+            return Err(range_err("camera.fov_y_deg", c.fov_y_deg, "1 ..= 170"));
+        }
+        if !(1..=16384).contains(&c.width) {
+            return Err(range_err("camera.width", c.width, "1 ..= 16384"));
+        }
+        if !(1..=16384).contains(&c.height) {
+            return Err(range_err("camera.height", c.height, "1 ..= 16384"));
+        }
+        match self.render.mode.as_str() {
+            "reference" | "predict" => {}
+            other => {
+                return Err(SceneError::Invalid(format!("render.mode = \"{other}\" is unknown; choose reference or predict")));
+            }
+        }
+        if !(self.render.p > 0.0 && self.render.p <= 1.0) {
+            return Err(range_err("render.p", self.render.p, "(0, 1]"));
+        }
+        Ok(())
+    }
+
+    pub fn phase(&self) -> PhaseFunction {
+        match self.medium.phase.as_str() {
+            "isotropic" => PhaseFunction::Isotropic,
+            "rayleigh" => PhaseFunction::Rayleigh,
+            "hazy" => PhaseFunction::Hazy,
+            "murky" => PhaseFunction::Murky,
+            _ => PhaseFunction::HenyeyGreenstein { g: self.medium.g },
+        }
+    }
+
+    pub fn build_grid(&self) -> Result<DensityGrid, SceneError> {
+        self.validate()?;
+        let b = Builtin::from_name(self.grid.builtin.as_deref().unwrap_or_default()).expect("validated");
+        Ok(b.grid(self.grid.resolution))
+    }
+
+    pub fn build_sun(&self) -> Result<Sun, SceneError> {
+        Sun::new(
+            Vec3::from_array(self.sun.direction),
+            self.sun.radiance.to_vec3(),
+            self.sun.angular_radius_deg.to_radians(),
+        )
+        .map_err(|e| SceneError::Invalid(format!("sun: {e}")))
+    }
+
+    pub fn build_camera(&self) -> Result<Camera, SceneError> {
+        let c = &self.camera;
+        let target = Vec3::from_array(c.target);
+        let (position, up) = match (c.position, &c.preset) {
+            (Some(p), _) => (Vec3::from_array(p), Vec3::from_array(c.up)),
+            (None, preset) => {
+                let preset = preset.as_deref().map(|p| CameraPreset::from_name(p).expect("validated")).unwrap_or(CameraPreset::Toplit);
+                let view = preset.view_direction(self.build_sun()?.direction());
+                (target - view * c.distance, default_up(view))
+            }
+        };
+        Camera::new(position, target, up, c.fov_y_deg, c.width, c.height).map_err(|e| SceneError::Invalid(format!("camera: {e}")))
+    }
+
+    /// The engine scene, with `grid` reused if given (so several renders of one cloud
+    /// share it).
+    pub fn build_scene(&self, grid: Option<Arc<DensityGrid>>) -> Result<Scene, SceneError> {
+        self.validate()?;
+        let grid = match grid {
+            Some(g) => g,
+            None => Arc::new(self.build_grid()?),
+        };
+        let medium = Medium::new(grid, self.medium.rho, self.medium.albedo, self.phase())
+            .map_err(|e| SceneError::Invalid(format!("medium: {e}")))?;
+        Ok(Scene {
+            medium,
+            sun: Some(self.build_sun()?),
+            sky: Sky { radiance: self.sky.radiance.to_vec3() },
+            camera: self.build_camera()?,
+        })
+    }
+
+    pub fn settings(&self) -> RenderSettings {
+        RenderSettings {
+            seed: self.seed,
+            k: self.k,
+            max_order: self.max_order,
+            mode: if self.render.mode == "predict" { Mode::Predict { p: self.render.p } } else { Mode::Reference },
+        }
+    }
+
+    pub fn integrator(&self) -> Result<Integrator, SceneError> {
+        // No trained model ships yet: prediction mode reports that clearly.
+        Integrator::new(self.settings(), None).map_err(|e| SceneError::Invalid(format!("render: {e}")))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str = "[grid]\nbuiltin = \"cumulus\"\nresolution = 16\n";
+
+    #[test]
+    fn minimal_scene_has_defaults() {
+        let s = SceneFile::from_toml_str(MINIMAL, "t").unwrap();
+        s.validate().unwrap();
+        assert_eq!(s.medium, MediumDesc::default());
+        let scene = s.build_scene(None).unwrap();
+        // Toplit default: camera looks perpendicular to the sun.
+        assert!(scene.camera.forward().dot(scene.sun.unwrap().direction()).abs() < 1e-6);
+        // Round trip through TOML.
+        assert_eq!(SceneFile::from_toml_str(&s.to_toml(), "t").unwrap(), s);
+    }
+
+    #[test]
+    fn unknown_keys_are_named() {
+        let e = SceneFile::from_toml_str(&format!("{MINIMAL}[medium]\nrho = 3\nalbedoo = 1\n"), "s.toml").unwrap_err();
+        assert!(e.to_string().contains("albedoo"), "{e}");
+        let e = SceneFile::from_toml_str(&format!("colour = 1\n{MINIMAL}"), "s.toml").unwrap_err();
+        assert!(e.to_string().contains("colour"), "{e}");
+    }
+
+    #[test]
+    fn out_of_range_values_name_key_and_range() {
+        let cases = [
+            ("[medium]\nalbedo = 1.5\n", "medium.albedo = 1.5 is out of range: 0 ..= 1"),
+            ("[medium]\nrho = -2\n", "medium.rho = -2 is out of range: 0 ..= 10000"),
+            ("[camera]\nfov_y_deg = 0\n", "camera.fov_y_deg = 0 is out of range: 1 ..= 170"),
+            ("[render]\np = 0\n", "render.p = 0 is out of range: (0, 1]"),
+        ];
+        for (extra, msg) in cases {
+            let s = SceneFile::from_toml_str(&format!("{MINIMAL}{extra}"), "t");
+            let e = s.and_then(|s| s.validate()).unwrap_err();
+            assert_eq!(e.to_string(), msg);
+        }
+        let s = SceneFile::from_toml_str("k = 0\n[grid]\nbuiltin = \"cumulus\"\n", "t").unwrap();
+        assert_eq!(s.validate().unwrap_err().to_string(), "k = 0 is out of range: 1 ..= 64");
+        let s = SceneFile::from_toml_str("[grid]\nbuiltin = \"cirrus\"\n", "t").unwrap();
+        assert!(s.validate().unwrap_err().to_string().contains("cirrus"));
+    }
+
+    #[test]
+    fn presets_follow_the_light() {
+        let omega = Vec3::new(0.3, -0.9, 0.1).normalize();
+        assert!(CameraPreset::Toplit.view_direction(omega).dot(omega).abs() < 1e-6);
+        assert_eq!(CameraPreset::Backlit.view_direction(omega), -omega);
+        assert_eq!(CameraPreset::Frontlit.view_direction(omega), omega);
+        // Backlit with the sun straight down looks straight up: a valid camera.
+        let s = SceneFile::from_toml_str(&format!("{MINIMAL}[camera]\npreset = \"backlit\"\n"), "t").unwrap();
+        let cam = s.build_camera().unwrap();
+        assert!((cam.forward() - Vec3::Y).length() < 1e-6);
+    }
+
+    #[test]
+    fn predict_mode_without_model_is_a_clear_error() {
+        let s = SceneFile::from_toml_str(&format!("{MINIMAL}[render]\nmode = \"predict\"\n"), "t").unwrap();
+        let e = s.integrator().unwrap_err().to_string();
+        assert!(e.contains("needs a predictor"), "{e}");
+    }
+}
