@@ -41,8 +41,12 @@ impl Builtin {
 
     /// The cloud voxelized at `resolution`^3 over [-0.5, 0.5]^3.
     pub fn grid(&self, resolution: u32) -> DensityGrid {
-        DensityGrid::from_fn(UVec3::splat(resolution), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)), |p| self.density(p))
-            .expect("built-in clouds are finite and non-negative")
+        DensityGrid::from_fn(
+            UVec3::splat(resolution),
+            Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)),
+            |p| self.density(p),
+        )
+        .expect("built-in clouds are finite and non-negative")
     }
 }
 
@@ -101,7 +105,14 @@ mod tests {
         let n = 32;
         for a in 0..n {
             for b in 0..n {
-                for v in [g.voxel(0, a, b), g.voxel(n - 1, a, b), g.voxel(a, 0, b), g.voxel(a, n - 1, b), g.voxel(a, b, 0), g.voxel(a, b, n - 1)] {
+                for v in [
+                    g.voxel(0, a, b),
+                    g.voxel(n - 1, a, b),
+                    g.voxel(a, 0, b),
+                    g.voxel(a, n - 1, b),
+                    g.voxel(a, b, 0),
+                    g.voxel(a, b, n - 1),
+                ] {
                     assert_eq!(v, 0.0);
                 }
             }

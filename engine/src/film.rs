@@ -3,7 +3,6 @@
 //! Sums are f64: 10^5 samples per pixel lose nothing.
 
 use crate::integrator::PathSample;
-use glam::Vec3;
 
 /// The buffers a render accumulates.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -50,12 +49,11 @@ impl Layer {
     }
 
     #[inline]
-    fn add(&mut self, i: usize, v: Vec3) {
+    fn add(&mut self, i: usize, v: [f64; 3]) {
         let (s, q) = (&mut self.sum[i], &mut self.sum_sq[i]);
         for c in 0..3 {
-            let x = v[c] as f64;
-            s[c] += x;
-            q[c] += x * x;
+            s[c] += v[c];
+            q[c] += v[c] * v[c];
         }
     }
 }
@@ -114,10 +112,12 @@ impl Film {
                 self.rejected += 1;
                 PathSample::default()
             };
-            self.layers[0].add(i, s.direct);
-            self.layers[1].add(i, s.low);
-            self.layers[2].add(i, s.high);
-            self.layers[3].add(i, s.full());
+            let (d, l, h) = (s.direct.as_dvec3(), s.low.as_dvec3(), s.high.as_dvec3());
+            self.layers[0].add(i, d.to_array());
+            self.layers[1].add(i, l.to_array());
+            self.layers[2].add(i, h.to_array());
+            // Summed in f64, so full = direct + low + high to f64 rounding.
+            self.layers[3].add(i, (d + l + h).to_array());
         }
         self.spp += 1;
     }
@@ -201,6 +201,7 @@ impl Film {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::Vec3;
 
     #[test]
     fn rejects_non_finite_and_tracks_variance() {

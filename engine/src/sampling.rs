@@ -105,3 +105,46 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod chi2_tests {
+    use super::*;
+    use crate::rng::Rng;
+    use crate::stats::{chi2_test, sidak};
+
+    /// Uniform cone and sphere sampling against their pdfs (10^6 samples, binned in
+    /// cos theta and phi about the axis; alpha 0.01, Sidak over the cases).
+    #[test]
+    fn cone_and_sphere_chi_square() {
+        let cases = [1.0f32 - 1e-3, 0.9, 0.2, -1.0];
+        let alpha = sidak(0.01, cases.len());
+        for (ci, &cos_max) in cases.iter().enumerate() {
+            let (nc, np) = (40usize, 16usize);
+            let mut obs = vec![0.0; nc * np];
+            let mut rng = Rng::new(77, ci as u64, 0);
+            let n = 1_000_000;
+            for _ in 0..n {
+                let d = if cos_max == -1.0 {
+                    sample_uniform_sphere(rng.uniform2())
+                } else {
+                    sample_uniform_cone(rng.uniform2(), cos_max)
+                };
+                assert!(d.z >= cos_max - 1e-6);
+                let t = ((d.z - cos_max) / (1.0 - cos_max)).clamp(0.0, 1.0 - 1e-7);
+                let phi = d.y.atan2(d.x).rem_euclid(2.0 * PI);
+                let ip = ((phi / (2.0 * PI)) * np as f32) as usize;
+                obs[(t * nc as f32) as usize * np + ip.min(np - 1)] += 1.0;
+            }
+            // Uniform in cos theta over [cos_max, 1] and in phi: equal expected counts.
+            let exp = vec![n as f64 / (nc * np) as f64; nc * np];
+            let r = chi2_test(&obs, &exp, 5.0);
+            assert!(r.p_value > alpha, "cos_max {cos_max}: {r:?}");
+            let pdf = if cos_max == -1.0 {
+                uniform_sphere_pdf()
+            } else {
+                uniform_cone_pdf(cos_max)
+            };
+            assert!((pdf * 2.0 * PI * (1.0 - cos_max) - 1.0).abs() < 1e-3);
+        }
+    }
+}

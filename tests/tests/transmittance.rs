@@ -1,0 +1,183 @@
+//! Delta tracking, ratio tracking and ray marching against closed-form transmittance,
+//! and free-flight distances against the exponential law. Tolerances are z-scores of
+//! the estimators' own standard errors at family-wise alpha = 0.01 (Sidak), or, for
+//! the deterministic ray marcher, the midpoint rule's error bound.
+
+use engine::stats::{Welford, chi2_test, z_bound};
+use engine::{FreeFlight, Medium, PhaseFunction, Rng};
+use glam::Vec3;
+use nimbus_tests::{ramp_grid, slab_grid};
+use std::sync::Arc;
+
+const N: usize = 1_000_000;
+
+struct Case {
+    name: &'static str,
+    medium: Medium,
+    o: Vec3,
+    d: Vec3,
+    t_max: f32,
+    tau: f64,
+    /// Bound on the midpoint rule's error at the step used.
+    march_tol: f64,
+}
+
+fn cases() -> Vec<Case> {
+    let mut out = Vec::new();
+    // Homogeneous slab, 8 voxels, thickness 0.5: normal and oblique rays, two densities.
+    let (ny, h) = (8u32, 0.5f32);
+    let slab = Arc::new(slab_grid(ny, h));
+    for &rho in &[2.0f32, 5.0] {
+        for &angle in &[0.0f32, 50.0] {
+            let a = angle.to_radians();
+            let d = Vec3::new(a.sin(), a.cos(), 0.0);
+            let o = Vec3::new(0.0, -1.0, 0.0);
+            let tau = rho as f64 * h as f64 / a.cos() as f64;
+            // Midpoint error: the profile is piecewise linear with 4 kinks (ramps at
+            // each face), each costing at most h^2/8 times the slope jump rho / vs.
+            let vs = (h / ny as f32) as f64;
+            let step = vs / 8.0 / a.cos() as f64;
+            let tol =
+                4.0 * step * step / 8.0 * (rho as f64 / vs) * (1.0 / a.cos() as f64) + 1e-5 * tau;
+            out.push(Case {
+                name: "slab",
+                medium: Medium::new(slab.clone(), rho, 1.0, PhaseFunction::Isotropic).unwrap(),
+                o,
+                d,
+                t_max: f32::INFINITY,
+                tau,
+                march_tol: tol,
+            });
+        }
+    }
+    // Linear ramp d(y) = 0.5 + 0.8 y, between voxel centres (no taper on the way):
+    // tau = rho * integral over t of d(o.y + t d.y).
+    let (a0, b0) = (0.5f32, 0.8f32);
+    let ramp = Arc::new(ramp_grid(16, a0, b0));
+    for &(rho, angle) in &[(4.0f32, 0.0f32), (6.0, 35.0)] {
+        let ang = angle.to_radians();
+        let d = Vec3::new(ang.sin(), ang.cos(), 0.0);
+        let o = Vec3::new(0.1, -0.45, 0.2);
+        let t_max = 0.9 / ang.cos();
+        let y0 = o.y as f64;
+        let y1 = (o.y + d.y * t_max) as f64;
+        let integral_dy = a0 as f64 * (y1 - y0) + 0.5 * b0 as f64 * (y1 * y1 - y0 * y0);
+        let tau = rho as f64 * integral_dy / d.y as f64;
+        // Tight (default) and loose (one cell for the whole grid) majorants: the loose
+        // one makes ratio tracking multiply many factors below 1 and play roulette.
+        for (name, cells) in [
+            ("ramp", engine::medium::MajorantGrid::DEFAULT_CELL_VOXELS),
+            ("ramp, loose majorant", 1024),
+        ] {
+            out.push(Case {
+                name,
+                medium: Medium::with_majorant_cells(
+                    ramp.clone(),
+                    rho,
+                    1.0,
+                    PhaseFunction::Isotropic,
+                    cells,
+                )
+                .unwrap(),
+                o,
+                d,
+                t_max,
+                tau,
+                // Linear along the ray inside the interior: the midpoint rule is exact
+                // up to float rounding.
+                march_tol: 1e-4 * tau,
+            });
+        }
+    }
+    out
+}
+
+#[test]
+fn tracking_estimators_match_closed_form() {
+    let cases = cases();
+    let z = z_bound(0.01, 2 * cases.len());
+    for (i, c) in cases.iter().enumerate() {
+        let exact = (-c.tau).exp();
+        // Delta tracking: a Bernoulli estimator with variance T (1 - T).
+        let mut rng = Rng::new(42, i as u64, 0);
+        let mut delta = Welford::default();
+        let mut ratio = Welford::default();
+        for _ in 0..N {
+            delta.add(c.medium.transmittance_delta(c.o, c.d, c.t_max, &mut rng) as f64);
+            ratio.add(c.medium.transmittance_ratio(c.o, c.d, c.t_max, &mut rng) as f64);
+        }
+        let se_delta = (exact * (1.0 - exact) / N as f64).sqrt();
+        assert!(
+            (delta.mean - exact).abs() < z * se_delta,
+            "{} case {i}: delta tracking {} vs exact {exact} (se {se_delta})",
+            c.name,
+            delta.mean
+        );
+        assert!(
+            (ratio.mean - exact).abs() < z * ratio.std_error().max(1e-7),
+            "{} case {i}: ratio tracking {} vs exact {exact} (se {})",
+            c.name,
+            ratio.mean,
+            ratio.std_error()
+        );
+        // Ratio tracking never has more variance than delta tracking (equal where the
+        // majorant is tight and the medium homogeneous: both are then binary).
+        assert!(
+            ratio.variance() <= delta.variance() * 1.02,
+            "{} case {i}",
+            c.name
+        );
+    }
+}
+
+#[test]
+fn ray_marching_matches_closed_form() {
+    for (i, c) in cases().iter().enumerate() {
+        let vs = c.medium.grid().voxel_size().y;
+        let tau = c
+            .medium
+            .optical_depth(c.o, c.d, c.t_max, vs / 8.0, f32::INFINITY) as f64;
+        assert!(
+            (tau - c.tau).abs() <= c.march_tol,
+            "{} case {i}: marched {tau} vs exact {} (tol {})",
+            c.name,
+            c.tau,
+            c.march_tol
+        );
+        // Early exit: stops once past tau_stop, reporting at least tau_stop.
+        let partial = c.medium.optical_depth(c.o, c.d, c.t_max, vs / 8.0, 0.5) as f64;
+        assert!(partial >= 0.5 && partial <= tau + 1e-6);
+    }
+}
+
+/// Free-flight distances in a homogeneous region follow rho exp(-rho t): chi-square
+/// over 50 equal-probability bins of the exponential law on [0, L], plus one bin for
+/// "beyond L".
+#[test]
+fn free_flight_distances_are_exponential() {
+    let slab = Arc::new(slab_grid(64, 4.0)); // 4 units thick, y in [-2, 2]
+    let rho = 1.5f32;
+    let medium = Medium::new(slab, rho, 1.0, PhaseFunction::Isotropic).unwrap();
+    // From inside the interior, straight up; the taper starts 2 - vs/2 above o.
+    let o = Vec3::new(0.0, -1.9, 0.0);
+    let l = 3.8f64; // stays in the constant region
+    let bins = 50usize;
+    let p_beyond = (-(rho as f64) * l).exp();
+    let mut obs = vec![0.0f64; bins + 1];
+    let mut rng = Rng::new(5, 0, 0);
+    let n = 1_000_000;
+    for _ in 0..n {
+        match medium.sample_free_flight(o, Vec3::Y, f32::INFINITY, &mut rng) {
+            FreeFlight::Collision { t } if (t as f64) < l => {
+                let cdf = 1.0 - (-(rho as f64) * t as f64).exp();
+                let b = (cdf / (1.0 - p_beyond) * bins as f64) as usize;
+                obs[b.min(bins - 1)] += 1.0;
+            }
+            _ => obs[bins] += 1.0,
+        }
+    }
+    let mut exp = vec![n as f64 * (1.0 - p_beyond) / bins as f64; bins + 1];
+    exp[bins] = n as f64 * p_beyond;
+    let r = chi2_test(&obs, &exp, 5.0);
+    assert!(r.p_value > 0.01, "{r:?}");
+}
