@@ -87,6 +87,10 @@ pub struct BenchRenderArgs {
     /// Also measure these majorant cell edges, as ratios against the first.
     #[arg(long, value_delimiter = ',')]
     pub compare_cells: Vec<u32>,
+    /// Grid resolution of the benchmark cloud (128 is the reference setting; 256 and
+    /// 512 check memory).
+    #[arg(long, default_value_t = 128)]
+    pub resolution: u32,
     /// Write the cloud (Mitsuba .vol), scene.json and nimbus_full.npy here for
     /// bench/mitsuba_compare.py.
     #[arg(long)]
@@ -250,7 +254,8 @@ pub fn bench_scene_file() -> SceneFile {
 
 fn bench_render(args: BenchRenderArgs) -> Result<()> {
     let threads = init_threads(args.threads)?;
-    let file = bench_scene_file();
+    let mut file = bench_scene_file();
+    file.grid.resolution = args.resolution;
     let grid = Arc::new(file.build_grid()?);
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
@@ -262,8 +267,8 @@ fn bench_render(args: BenchRenderArgs) -> Result<()> {
             .filter(|c| *c != args.majorant_cells),
     );
     println!(
-        "bench render: cumulus 128^3, rho 40, albedo 1, HG g 0.85, toplit, 256x256, {} spp, {threads} threads",
-        args.spp
+        "bench render: cumulus {}^3, rho 40, albedo 1, HG g 0.85, toplit, 256x256, {} spp, {threads} threads",
+        args.resolution, args.spp
     );
     let mut base_rate = None;
     let mut results = Vec::new();
@@ -298,9 +303,18 @@ fn bench_render(args: BenchRenderArgs) -> Result<()> {
             write_mitsuba_bundle(dir, &scene, &outcome, threads)?;
         }
     }
+    let peak = peak_resident_bytes();
+    if let Some(p) = peak {
+        println!(
+            "  peak resident memory: {:.1} MiB (density grid {:.1} MiB)",
+            p as f64 / 1048576.0,
+            grid.memory_bytes() as f64 / 1048576.0
+        );
+    }
     println!(
         "{}",
-        serde_json::json!({"bench": "render", "spp": args.spp, "threads": threads, "results": results})
+        serde_json::json!({"bench": "render", "resolution": args.resolution, "spp": args.spp,
+            "threads": threads, "peak_resident_bytes": peak, "results": results})
     );
     Ok(())
 }
@@ -343,4 +357,12 @@ fn write_mitsuba_bundle(
         dir.display()
     );
     Ok(())
+}
+
+/// Peak resident set size of this process (Linux: VmHWM), if known.
+pub fn peak_resident_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
 }

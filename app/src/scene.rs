@@ -118,7 +118,7 @@ fn default_resolution() -> u32 {
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct MediumDesc {
     /// Density scale, 0 ..= 10000 per world unit. Default 40.
     pub rho: f32,

@@ -8,7 +8,7 @@
 //! loop, [`Medium::sample_t_maj`], calls back at every tentative collision; the
 //! callers decide absorb, scatter or null.
 
-use crate::grid::{Bounds3, DensityGrid};
+use crate::grid::{Bounds3, DensityGrid, floor_i32};
 use crate::phase::PhaseFunction;
 use crate::rng::Rng;
 use crate::sampling::sample_exponential;
@@ -29,7 +29,7 @@ pub struct MajorantGrid {
 
 impl MajorantGrid {
     /// Default cell edge in voxels (see `nimbus bench render` for the trade-off).
-    pub const DEFAULT_CELL_VOXELS: u32 = 4;
+    pub const DEFAULT_CELL_VOXELS: u32 = 8;
 
     pub fn new(grid: &DensityGrid, cell_voxels: u32) -> Self {
         let b = cell_voxels.max(1);
@@ -88,7 +88,7 @@ impl MajorantGrid {
         // Position in cell units at entry.
         let q = (o + d * t0 - self.bounds.min) * self.inv_cell_size;
         let dims = self.dims.as_ivec3();
-        let cell = q.floor().as_ivec3().clamp(IVec3::ZERO, dims - 1);
+        let cell = IVec3::new(floor_i32(q.x), floor_i32(q.y), floor_i32(q.z)).clamp(IVec3::ZERO, dims - 1);
         let dq = d * self.inv_cell_size;
         let mut step = IVec3::ZERO;
         let mut next_t = Vec3::splat(f32::INFINITY);

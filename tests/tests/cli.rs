@@ -1,0 +1,107 @@
+//! The `nimbus render` command end to end: scene file in, EXR and PNG out, and the
+//! errors a user sees for bad input.
+
+use app::cli::{Cli, run};
+use app::output::read_exr;
+use clap::Parser;
+use std::path::{Path, PathBuf};
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("nimbus-cli-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn nimbus(args: &[&str]) -> anyhow::Result<()> {
+    let mut argv = vec!["nimbus"];
+    argv.extend_from_slice(args);
+    run(Cli::try_parse_from(argv)?)
+}
+
+const SCENE: &str = r#"
+seed = 3
+k = 2
+[grid]
+builtin = "cumulus"
+resolution = 24
+[medium]
+rho = 15.0
+[sky]
+radiance = 0.05
+[camera]
+preset = "toplit"
+width = 24
+height = 16
+"#;
+
+#[test]
+fn render_writes_layered_exr_and_png() {
+    let dir = temp_dir("render");
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, SCENE).unwrap();
+    let (exr, png) = (dir.join("out.exr"), dir.join("out.png"));
+    nimbus(&["render", s(&scene), "--spp", "4", "--out", s(&exr), "--png", s(&png), "--quiet"]).unwrap();
+
+    let (w, h, layers) = read_exr(&exr).unwrap();
+    assert_eq!((w, h), (24, 16));
+    let layer = |n: &str| &layers.iter().find(|l| l.name == n).unwrap_or_else(|| panic!("no layer {n}")).rgb;
+    let (full, direct, low, high, var) = (layer("full"), layer("direct"), layer("low"), layer("high"), layer("variance"));
+    for i in 0..full.len() {
+        for c in 0..3 {
+            assert!(full[i][c].is_finite() && var[i][c] >= 0.0);
+            let sum = direct[i][c] + low[i][c] + high[i][c];
+            assert!((sum - full[i][c]).abs() <= 1e-5 * full[i][c].max(1e-3));
+        }
+    }
+    // The sky shows around the cloud, the cloud scatters light.
+    assert!((full[0][0] - 0.05).abs() < 1e-6, "corner sees the sky: {:?}", full[0]);
+    assert!(high.iter().any(|p| p[0] > 0.0) && low.iter().any(|p| p[0] > 0.0));
+    let png_bytes = std::fs::read(&png).unwrap();
+    assert_eq!(&png_bytes[..8], b"\x89PNG\r\n\x1a\n");
+    // No temporaries left behind.
+    let names: Vec<String> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    assert!(names.iter().all(|n| !n.ends_with(".tmp")), "{names:?}");
+
+    // OpenEXR's own tools read it (CI installs them; elsewhere the check is skipped).
+    match std::process::Command::new("exrheader").arg(&exr).output() {
+        Ok(out) => {
+            let text = String::from_utf8_lossy(&out.stdout);
+            assert!(out.status.success(), "exrheader failed: {text}");
+            for ch in ["full.R", "low.G", "high.B", "direct.R", "variance.R"] {
+                assert!(text.contains(ch), "exrheader does not list {ch}:\n{text}");
+            }
+        }
+        Err(_) => assert!(std::env::var_os("CI").is_none(), "CI must install exrheader (Debian package openexr)"),
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn bad_input_gives_clear_messages() {
+    let dir = temp_dir("bad");
+    let out = dir.join("x.exr");
+    let missing = dir.join("nope.toml");
+    let e = nimbus(&["render", s(&missing), "--out", s(&out)]).unwrap_err();
+    assert!(format!("{e:#}").contains("nope.toml"), "{e:#}");
+
+    let bad_key = dir.join("bad_key.toml");
+    std::fs::write(&bad_key, "[grid]\nbuiltin = \"cumulus\"\n[medium]\nrhoo = 3\n").unwrap();
+    let e = format!("{:#}", nimbus(&["render", s(&bad_key), "--out", s(&out)]).unwrap_err());
+    assert!(e.contains("rhoo") && e.contains("bad_key.toml"), "{e}");
+
+    let bad_range = dir.join("bad_range.toml");
+    std::fs::write(&bad_range, "[grid]\nbuiltin = \"cumulus\"\n[medium]\nalbedo = 2\n").unwrap();
+    let e = format!("{:#}", nimbus(&["render", s(&bad_range), "--out", s(&out)]).unwrap_err());
+    assert!(e.contains("medium.albedo = 2 is out of range: 0 ..= 1"), "{e}");
+
+    let garbage = dir.join("garbage.toml");
+    std::fs::write(&garbage, [0xffu8, 0xfe, 0x00, 0x12]).unwrap();
+    assert!(nimbus(&["render", s(&garbage), "--out", s(&out)]).is_err());
+    assert!(!out.exists(), "nothing written on error");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
