@@ -11,11 +11,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 #[derive(Parser, Debug)]
-#[command(
-    name = "nimbus",
-    version,
-    about = "Author and render clouds: path traced low orders, learned high orders"
-)]
+#[command(name = "nimbus", version, about = "Author and render clouds: path traced low orders, learned high orders")]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Option<Command>,
@@ -103,15 +99,11 @@ pub fn run(cli: Cli) -> Result<()> {
         None => {
             use clap::CommandFactory;
             Cli::command().print_help()?;
-            println!(
-                "\n\nThe interactive window is not built yet (issue 8); use the subcommands above."
-            );
+            println!("\n\nThe interactive window is not built yet (issue 8); use the subcommands above.");
             Ok(())
         }
         Some(Command::Render(args)) => render(args),
-        Some(Command::Bench {
-            which: BenchCommand::Render(args),
-        }) => bench_render(args),
+        Some(Command::Bench { which: BenchCommand::Render(args) }) => bench_render(args),
     }
 }
 
@@ -144,23 +136,16 @@ fn progress_bar(len: u64, quiet: bool) -> ProgressBar {
     }
     let bar = ProgressBar::new(len);
     bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} spp  ETA {eta}  {msg}",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} spp  ETA {eta}  {msg}")
+            .expect("valid template")
+            .progress_chars("=> "),
     );
     bar
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32)> {
-    let (w, h) = s
-        .split_once('x')
-        .with_context(|| format!("--size {s}: expected WIDTHxHEIGHT, e.g. 512x512"))?;
-    Ok((
-        w.trim().parse().context("--size width")?,
-        h.trim().parse().context("--size height")?,
-    ))
+    let (w, h) = s.split_once('x').with_context(|| format!("--size {s}: expected WIDTHxHEIGHT, e.g. 512x512"))?;
+    Ok((w.trim().parse().context("--size width")?, h.trim().parse().context("--size height")?))
 }
 
 fn render(args: RenderArgs) -> Result<()> {
@@ -186,9 +171,7 @@ fn render(args: RenderArgs) -> Result<()> {
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
     let bar = progress_bar(args.spp as u64, args.quiet);
-    let outcome = render_spp(scene.clone(), integrator, args.spp, &control, |done| {
-        bar.set_position(done as u64)
-    })?;
+    let outcome = render_spp(scene.clone(), integrator, args.spp, &control, |done| bar.set_position(done as u64))?;
     bar.finish_and_clear();
     let film = &outcome.film;
     if film.spp() == 0 {
@@ -196,10 +179,7 @@ fn render(args: RenderArgs) -> Result<()> {
     }
     write_outputs(film, &args.out, args.png.as_deref(), tone, args.exposure)?;
     if film.rejected_samples() > 0 {
-        eprintln!(
-            "warning: {} non-finite samples were dropped",
-            film.rejected_samples()
-        );
+        eprintln!("warning: {} non-finite samples were dropped", film.rejected_samples());
     }
     let summary = serde_json::json!({
         "spp": film.spp(),
@@ -216,32 +196,17 @@ fn render(args: RenderArgs) -> Result<()> {
 }
 
 /// EXR with every buffer, and the PNG if asked.
-pub fn write_outputs(
-    film: &engine::Film,
-    exr: &Path,
-    png: Option<&Path>,
-    tone: ToneMap,
-    exposure: f32,
-) -> Result<()> {
+pub fn write_outputs(film: &engine::Film, exr: &Path, png: Option<&Path>, tone: ToneMap, exposure: f32) -> Result<()> {
     output::write_exr(exr, film.width(), film.height(), &output::film_layers(film))?;
     if let Some(png) = png {
-        output::write_png(
-            png,
-            film.width(),
-            film.height(),
-            &film.mean(Buffer::Full),
-            tone,
-            exposure,
-        )?;
+        output::write_png(png, film.width(), film.height(), &film.mean(Buffer::Full), tone, exposure)?;
     }
     Ok(())
 }
 
 /// The fixed benchmark scene of `nimbus bench render`.
 pub fn bench_scene_file() -> SceneFile {
-    let mut s =
-        SceneFile::from_toml_str("[grid]\nbuiltin = \"cumulus\"\nresolution = 128\n", "bench")
-            .expect("valid");
+    let mut s = SceneFile::from_toml_str("[grid]\nbuiltin = \"cumulus\"\nresolution = 128\n", "bench").expect("valid");
     s.medium.rho = 40.0;
     s.medium.albedo = 1.0;
     s.medium.g = 0.85;
@@ -260,12 +225,7 @@ fn bench_render(args: BenchRenderArgs) -> Result<()> {
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
     let mut cells = vec![args.majorant_cells];
-    cells.extend(
-        args.compare_cells
-            .iter()
-            .copied()
-            .filter(|c| *c != args.majorant_cells),
-    );
+    cells.extend(args.compare_cells.iter().copied().filter(|c| *c != args.majorant_cells));
     println!(
         "bench render: cumulus {}^3, rho 40, albedo 1, HG g 0.85, toplit, 256x256, {} spp, {threads} threads",
         args.resolution, args.spp
@@ -274,18 +234,12 @@ fn bench_render(args: BenchRenderArgs) -> Result<()> {
     let mut results = Vec::new();
     for &c in &cells {
         let base = file.build_scene(Some(grid.clone()))?;
-        let medium = engine::Medium::with_majorant_cells(
-            grid.clone(),
-            file.medium.rho,
-            file.medium.albedo,
-            file.phase(),
-            c,
-        )?;
+        let medium =
+            engine::Medium::with_majorant_cells(grid.clone(), file.medium.rho, file.medium.albedo, file.phase(), c)?;
         let scene = Arc::new(engine::Scene { medium, ..base });
         let bar = progress_bar(args.spp as u64, false);
-        let outcome = render_spp(scene.clone(), file.integrator()?, args.spp, &control, |d| {
-            bar.set_position(d as u64)
-        })?;
+        let outcome =
+            render_spp(scene.clone(), file.integrator()?, args.spp, &control, |d| bar.set_position(d as u64))?;
         bar.finish_and_clear();
         if outcome.stopped {
             bail!("stopped");
@@ -326,17 +280,9 @@ fn write_mitsuba_bundle(
     threads: usize,
 ) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    output::write_bytes_atomically(
-        &dir.join("cloud.vol"),
-        &output::mitsuba_vol_bytes(scene.medium.grid()),
-    )?;
+    output::write_bytes_atomically(&dir.join("cloud.vol"), &output::mitsuba_vol_bytes(scene.medium.grid()))?;
     let film = &outcome.film;
-    output::write_npy_image(
-        &dir.join("nimbus_full.npy"),
-        film.width(),
-        film.height(),
-        &film.mean(Buffer::Full),
-    )?;
+    output::write_npy_image(&dir.join("nimbus_full.npy"), film.width(), film.height(), &film.mean(Buffer::Full))?;
     let cam = &scene.camera;
     let sun = scene.sun.expect("bench scene has a sun");
     let g = scene.medium.phase().g();
@@ -348,14 +294,8 @@ fn write_mitsuba_bundle(
         "medium": {"rho": scene.medium.rho(), "albedo": scene.medium.albedo(), "g": g},
         "nimbus": {"spp": film.spp(), "seconds": outcome.render_secs, "samples_per_second": outcome.samples_per_sec(), "threads": threads, "image": "nimbus_full.npy"},
     });
-    output::write_bytes_atomically(
-        &dir.join("scene.json"),
-        serde_json::to_string_pretty(&json)?.as_bytes(),
-    )?;
-    eprintln!(
-        "wrote cloud.vol, scene.json and nimbus_full.npy to {}",
-        dir.display()
-    );
+    output::write_bytes_atomically(&dir.join("scene.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
+    eprintln!("wrote cloud.vol, scene.json and nimbus_full.npy to {}", dir.display());
     Ok(())
 }
 

@@ -41,11 +41,9 @@ impl Builtin {
 
     /// The cloud voxelized at `resolution`^3 over [-0.5, 0.5]^3.
     pub fn grid(&self, resolution: u32) -> DensityGrid {
-        DensityGrid::from_fn(
-            UVec3::splat(resolution),
-            Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)),
-            |p| self.density(p),
-        )
+        DensityGrid::from_fn(UVec3::splat(resolution), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)), |p| {
+            self.density(p)
+        })
         .expect("built-in clouds are finite and non-negative")
     }
 }

@@ -9,23 +9,18 @@ use std::path::{Path, PathBuf};
 
 /// A temporary path in the same directory as `path` (so the rename is atomic).
 fn temp_path(path: &Path) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
     path.with_file_name(format!(".{name}.{}.tmp", std::process::id()))
 }
 
 /// Runs `write` on a temporary file, then renames it to `path`.
 pub fn write_atomically(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)
-            .with_context(|| format!("cannot create directory {}", dir.display()))?;
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create directory {}", dir.display()))?;
     }
     let tmp = temp_path(path);
     let result = write(&tmp).and_then(|_| {
-        std::fs::rename(&tmp, path)
-            .with_context(|| format!("cannot move {} to {}", tmp.display(), path.display()))
+        std::fs::rename(&tmp, path).with_context(|| format!("cannot move {} to {}", tmp.display(), path.display()))
     });
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
@@ -54,15 +49,9 @@ pub struct ExrLayer {
 pub fn film_layers(film: &Film) -> Vec<ExrLayer> {
     let mut layers: Vec<ExrLayer> = [Buffer::Full, Buffer::Direct, Buffer::Low, Buffer::High]
         .iter()
-        .map(|b| ExrLayer {
-            name: b.name().into(),
-            rgb: film.mean(*b),
-        })
+        .map(|b| ExrLayer { name: b.name().into(), rgb: film.mean(*b) })
         .collect();
-    layers.push(ExrLayer {
-        name: "variance".into(),
-        rgb: film.variance_of_mean(Buffer::Full),
-    });
+    layers.push(ExrLayer { name: "variance".into(), rgb: film.variance_of_mean(Buffer::Full) });
     layers
 }
 
@@ -73,17 +62,10 @@ pub fn write_exr(path: &Path, width: u32, height: u32, layers: &[ExrLayer]) -> R
     use exr::prelude::*;
     let mut channels: Vec<AnyChannel<FlatSamples>> = Vec::new();
     for layer in layers {
-        anyhow::ensure!(
-            layer.rgb.len() == (width * height) as usize,
-            "layer {} has the wrong size",
-            layer.name
-        );
+        anyhow::ensure!(layer.rgb.len() == (width * height) as usize, "layer {} has the wrong size", layer.name);
         for (c, suffix) in ["R", "G", "B"].iter().enumerate() {
             let data: Vec<f32> = layer.rgb.iter().map(|p| p[c]).collect();
-            channels.push(AnyChannel::new(
-                format!("{}.{suffix}", layer.name).as_str(),
-                FlatSamples::F32(data),
-            ));
+            channels.push(AnyChannel::new(format!("{}.{suffix}", layer.name).as_str(), FlatSamples::F32(data)));
         }
     }
     let layer = Layer::new(
@@ -93,12 +75,7 @@ pub fn write_exr(path: &Path, width: u32, height: u32, layers: &[ExrLayer]) -> R
         AnyChannels::sort(SmallVec::from_vec(channels)),
     );
     let image = Image::from_layer(layer);
-    write_atomically(path, |tmp| {
-        image
-            .write()
-            .to_file(tmp)
-            .map_err(|e| anyhow::anyhow!("EXR encoding failed: {e}"))
-    })
+    write_atomically(path, |tmp| image.write().to_file(tmp).map_err(|e| anyhow::anyhow!("EXR encoding failed: {e}")))
 }
 
 /// Reads an EXR written by [`write_exr`] back: (width, height, layers by name).
@@ -126,10 +103,7 @@ pub fn read_exr(path: &Path) -> Result<(u32, u32, Vec<ExrLayer>)> {
         let idx = match layers.iter().position(|l| l.name == name) {
             Some(i) => i,
             None => {
-                layers.push(ExrLayer {
-                    name: name.to_string(),
-                    rgb: vec![[0.0; 3]; size.area()],
-                });
+                layers.push(ExrLayer { name: name.to_string(), rgb: vec![[0.0; 3]; size.area()] });
                 layers.len() - 1
             }
         };
@@ -163,15 +137,9 @@ impl ToneMap {
         let x = (linear * exposure_ev.exp2()).max(0.0);
         let y = match self {
             ToneMap::Clamp => x.min(1.0),
-            ToneMap::Filmic => {
-                ((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14)).clamp(0.0, 1.0)
-            }
+            ToneMap::Filmic => ((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14)).clamp(0.0, 1.0),
         };
-        let s = if y <= 0.003_130_8 {
-            12.92 * y
-        } else {
-            1.055 * y.powf(1.0 / 2.4) - 0.055
-        };
+        let s = if y <= 0.003_130_8 { 12.92 * y } else { 1.055 * y.powf(1.0 / 2.4) - 0.055 };
         (s * 255.0 + 0.5).clamp(0.0, 255.0) as u8
     }
 
@@ -201,10 +169,7 @@ pub fn write_png(
 ) -> Result<()> {
     let rgba = tone.to_rgba8(rgb, exposure_ev);
     let img = image::RgbaImage::from_raw(width, height, rgba).context("image size mismatch")?;
-    write_atomically(path, |tmp| {
-        img.save_with_format(tmp, image::ImageFormat::Png)
-            .map_err(Into::into)
-    })
+    write_atomically(path, |tmp| img.save_with_format(tmp, image::ImageFormat::Png).map_err(Into::into))
 }
 
 /// A NumPy .npy file (version 1.0, little-endian float32, C order).
@@ -212,14 +177,7 @@ pub fn npy_bytes_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
     assert_eq!(shape.iter().product::<usize>(), data.len());
     let shape_str = match shape.len() {
         1 => format!("({},)", shape[0]),
-        _ => format!(
-            "({})",
-            shape
-                .iter()
-                .map(|s| s.to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ),
+        _ => format!("({})", shape.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")),
     };
     let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_str}, }}");
     // Pad so that the data starts at a multiple of 64 bytes (magic 6 + version 2 + len 2).
@@ -240,10 +198,7 @@ pub fn npy_bytes_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
 /// Writes an (height, width, 3) float32 image as .npy.
 pub fn write_npy_image(path: &Path, width: u32, height: u32, rgb: &[[f32; 3]]) -> Result<()> {
     let flat: Vec<f32> = rgb.iter().flatten().copied().collect();
-    write_bytes_atomically(
-        path,
-        &npy_bytes_f32(&[height as usize, width as usize, 3], &flat),
-    )
+    write_bytes_atomically(path, &npy_bytes_f32(&[height as usize, width as usize, 3], &flat))
 }
 
 /// Mitsuba's binary grid volume (.vol, version 3, float32, one channel). The grid is
@@ -268,11 +223,7 @@ pub fn mitsuba_vol_bytes(grid: &DensityGrid) -> Vec<u8> {
         for y in 0..py {
             for x in 0..px {
                 let inside = x >= 1 && y >= 1 && z >= 1 && x <= n.x && y <= n.y && z <= n.z;
-                let v = if inside {
-                    grid.voxel(x - 1, y - 1, z - 1)
-                } else {
-                    0.0
-                };
+                let v = if inside { grid.voxel(x - 1, y - 1, z - 1) } else { 0.0 };
                 out.extend_from_slice(&v.to_le_bytes());
             }
         }
@@ -291,10 +242,7 @@ mod tests {
         assert_eq!((10 + hlen) % 64, 0);
         let header = std::str::from_utf8(&b[10..10 + hlen]).unwrap();
         assert!(header.contains("'shape': (2, 3)"));
-        assert_eq!(
-            f32::from_le_bytes(b[10 + hlen..14 + hlen].try_into().unwrap()),
-            1.0
-        );
+        assert_eq!(f32::from_le_bytes(b[10 + hlen..14 + hlen].try_into().unwrap()), 1.0);
     }
 
     #[test]
@@ -323,11 +271,7 @@ mod tests {
         });
         assert!(r.is_err());
         assert_eq!(std::fs::read(&target).unwrap(), b"old", "old file intact");
-        assert_eq!(
-            std::fs::read_dir(&dir).unwrap().count(),
-            1,
-            "temporary removed"
-        );
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1, "temporary removed");
         write_bytes_atomically(&target, b"new").unwrap();
         assert_eq!(std::fs::read(&target).unwrap(), b"new");
         std::fs::remove_dir_all(&dir).unwrap();

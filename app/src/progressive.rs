@@ -40,9 +40,5 @@ pub fn render_spp(
         on_pass(done);
     }
     let render_secs = start.elapsed().as_secs_f64();
-    Ok(RenderOutcome {
-        film: renderer.snapshot(),
-        render_secs,
-        stopped,
-    })
+    Ok(RenderOutcome { film: renderer.snapshot(), render_secs, stopped })
 }

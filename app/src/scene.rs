@@ -22,9 +22,7 @@
 //! ```
 
 use crate::cloud::Builtin;
-use engine::{
-    Camera, DensityGrid, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene, Sky, Sun,
-};
+use engine::{Camera, DensityGrid, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene, Sky, Sun};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -33,28 +31,17 @@ use std::sync::Arc;
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
     #[error("cannot read scene file {path}: {source}")]
-    Io {
-        path: String,
-        source: std::io::Error,
-    },
+    Io { path: String, source: std::io::Error },
     #[error("scene file {path}: {message}")]
     Parse { path: String, message: String },
     #[error("{key} = {value} is out of range: {range}")]
-    Range {
-        key: &'static str,
-        value: String,
-        range: &'static str,
-    },
+    Range { key: &'static str, value: String, range: &'static str },
     #[error("{0}")]
     Invalid(String),
 }
 
 fn range_err(key: &'static str, value: impl std::fmt::Display, range: &'static str) -> SceneError {
-    SceneError::Range {
-        key,
-        value: value.to_string(),
-        range,
-    }
+    SceneError::Range { key, value: value.to_string(), range }
 }
 
 /// Radiance given as one number (grey) or as [r, g, b].
@@ -132,12 +119,7 @@ pub struct MediumDesc {
 
 impl Default for MediumDesc {
     fn default() -> Self {
-        MediumDesc {
-            rho: 40.0,
-            albedo: 1.0,
-            phase: "hg".into(),
-            g: 0.85,
-        }
+        MediumDesc { rho: 40.0, albedo: 1.0, phase: "hg".into(), g: 0.85 }
     }
 }
 
@@ -154,11 +136,7 @@ pub struct SunDesc {
 
 impl Default for SunDesc {
     fn default() -> Self {
-        SunDesc {
-            direction: [0.0, -1.0, 0.0],
-            radiance: Rgb::Grey(1.0),
-            angular_radius_deg: 0.0,
-        }
+        SunDesc { direction: [0.0, -1.0, 0.0], radiance: Rgb::Grey(1.0), angular_radius_deg: 0.0 }
     }
 }
 
@@ -171,9 +149,7 @@ pub struct SkyDesc {
 
 impl Default for SkyDesc {
     fn default() -> Self {
-        SkyDesc {
-            radiance: Rgb::Grey(0.0),
-        }
+        SkyDesc { radiance: Rgb::Grey(0.0) }
     }
 }
 
@@ -223,10 +199,7 @@ pub struct RenderDesc {
 
 impl Default for RenderDesc {
     fn default() -> Self {
-        RenderDesc {
-            mode: "reference".into(),
-            p: 0.25,
-        }
+        RenderDesc { mode: "reference".into(), p: 0.25 }
     }
 }
 
@@ -259,9 +232,7 @@ impl CameraPreset {
             CameraPreset::Toplit => {
                 // The horizontal direction -z made perpendicular to the light.
                 let c = Vec3::NEG_Z - omega_l * omega_l.dot(Vec3::NEG_Z);
-                c.try_normalize()
-                    .unwrap_or(Vec3::X - omega_l * omega_l.x)
-                    .normalize()
+                c.try_normalize().unwrap_or(Vec3::X - omega_l * omega_l.x).normalize()
             }
         }
     }
@@ -269,26 +240,18 @@ impl CameraPreset {
 
 /// An up vector not parallel to `view`: +y, or -z when looking (nearly) vertically.
 pub fn default_up(view: Vec3) -> Vec3 {
-    if view.cross(Vec3::Y).length() > 1e-3 {
-        Vec3::Y
-    } else {
-        Vec3::NEG_Z
-    }
+    if view.cross(Vec3::Y).length() > 1e-3 { Vec3::Y } else { Vec3::NEG_Z }
 }
 
 impl SceneFile {
     pub fn from_toml_str(text: &str, origin: &str) -> Result<Self, SceneError> {
-        toml::from_str(text).map_err(|e| SceneError::Parse {
-            path: origin.to_string(),
-            message: e.to_string().trim().to_string(),
-        })
+        toml::from_str(text)
+            .map_err(|e| SceneError::Parse { path: origin.to_string(), message: e.to_string().trim().to_string() })
     }
 
     pub fn load(path: &Path) -> Result<Self, SceneError> {
-        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
-            path: path.display().to_string(),
-            source,
-        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| SceneError::Io { path: path.display().to_string(), source })?;
         Self::from_toml_str(&text, &path.display().to_string())
     }
 
@@ -321,11 +284,7 @@ impl SceneFile {
             _ => {}
         }
         if !(2..=1024).contains(&self.grid.resolution) {
-            return Err(range_err(
-                "grid.resolution",
-                self.grid.resolution,
-                "2 ..= 1024",
-            ));
+            return Err(range_err("grid.resolution", self.grid.resolution, "2 ..= 1024"));
         }
         let m = &self.medium;
         if !(m.rho.is_finite() && (0.0..=10000.0).contains(&m.rho)) {
@@ -345,34 +304,18 @@ impl SceneFile {
         }
         let s = &self.sun;
         if Vec3::from_array(s.direction).try_normalize().is_none() {
-            return Err(range_err(
-                "sun.direction",
-                format!("{:?}", s.direction),
-                "a non-zero finite vector",
-            ));
+            return Err(range_err("sun.direction", format!("{:?}", s.direction), "a non-zero finite vector"));
         }
         let rad = s.radiance.to_vec3();
         if !(rad.is_finite() && rad.min_element() >= 0.0) {
-            return Err(range_err(
-                "sun.radiance",
-                format!("{rad}"),
-                ">= 0 and finite",
-            ));
+            return Err(range_err("sun.radiance", format!("{rad}"), ">= 0 and finite"));
         }
         if !(0.0..=20.0).contains(&s.angular_radius_deg) {
-            return Err(range_err(
-                "sun.angular_radius_deg",
-                s.angular_radius_deg,
-                "0 ..= 20",
-            ));
+            return Err(range_err("sun.angular_radius_deg", s.angular_radius_deg, "0 ..= 20"));
         }
         let sky = self.sky.radiance.to_vec3();
         if !(sky.is_finite() && sky.min_element() >= 0.0) {
-            return Err(range_err(
-                "sky.radiance",
-                format!("{sky}"),
-                ">= 0 and finite",
-            ));
+            return Err(range_err("sky.radiance", format!("{sky}"), ">= 0 and finite"));
         }
         let c = &self.camera;
         if let Some(p) = &c.preset {
@@ -420,8 +363,7 @@ impl SceneFile {
 
     pub fn build_grid(&self) -> Result<DensityGrid, SceneError> {
         self.validate()?;
-        let b = Builtin::from_name(self.grid.builtin.as_deref().unwrap_or_default())
-            .expect("validated");
+        let b = Builtin::from_name(self.grid.builtin.as_deref().unwrap_or_default()).expect("validated");
         Ok(b.grid(self.grid.resolution))
     }
 
@@ -465,9 +407,7 @@ impl SceneFile {
         Ok(Scene {
             medium,
             sun: Some(self.build_sun()?),
-            sky: Sky {
-                radiance: self.sky.radiance.to_vec3(),
-            },
+            sky: Sky { radiance: self.sky.radiance.to_vec3() },
             camera: self.build_camera()?,
         })
     }
@@ -477,18 +417,13 @@ impl SceneFile {
             seed: self.seed,
             k: self.k,
             max_order: self.max_order,
-            mode: if self.render.mode == "predict" {
-                Mode::Predict { p: self.render.p }
-            } else {
-                Mode::Reference
-            },
+            mode: if self.render.mode == "predict" { Mode::Predict { p: self.render.p } } else { Mode::Reference },
         }
     }
 
     pub fn integrator(&self) -> Result<Integrator, SceneError> {
         // No trained model ships yet: prediction mode reports that clearly.
-        Integrator::new(self.settings(), None)
-            .map_err(|e| SceneError::Invalid(format!("render: {e}")))
+        Integrator::new(self.settings(), None).map_err(|e| SceneError::Invalid(format!("render: {e}")))
     }
 }
 
@@ -505,25 +440,14 @@ mod tests {
         assert_eq!(s.medium, MediumDesc::default());
         let scene = s.build_scene(None).unwrap();
         // Toplit default: camera looks perpendicular to the sun.
-        assert!(
-            scene
-                .camera
-                .forward()
-                .dot(scene.sun.unwrap().direction())
-                .abs()
-                < 1e-6
-        );
+        assert!(scene.camera.forward().dot(scene.sun.unwrap().direction()).abs() < 1e-6);
         // Round trip through TOML.
         assert_eq!(SceneFile::from_toml_str(&s.to_toml(), "t").unwrap(), s);
     }
 
     #[test]
     fn unknown_keys_are_named() {
-        let e = SceneFile::from_toml_str(
-            &format!("{MINIMAL}[medium]\nrho = 3\nalbedoo = 1\n"),
-            "s.toml",
-        )
-        .unwrap_err();
+        let e = SceneFile::from_toml_str(&format!("{MINIMAL}[medium]\nrho = 3\nalbedoo = 1\n"), "s.toml").unwrap_err();
         assert!(e.to_string().contains("albedoo"), "{e}");
         let e = SceneFile::from_toml_str(&format!("colour = 1\n{MINIMAL}"), "s.toml").unwrap_err();
         assert!(e.to_string().contains("colour"), "{e}");
@@ -532,18 +456,9 @@ mod tests {
     #[test]
     fn out_of_range_values_name_key_and_range() {
         let cases = [
-            (
-                "[medium]\nalbedo = 1.5\n",
-                "medium.albedo = 1.5 is out of range: 0 ..= 1",
-            ),
-            (
-                "[medium]\nrho = -2\n",
-                "medium.rho = -2 is out of range: 0 ..= 10000",
-            ),
-            (
-                "[camera]\nfov_y_deg = 0\n",
-                "camera.fov_y_deg = 0 is out of range: 1 ..= 170",
-            ),
+            ("[medium]\nalbedo = 1.5\n", "medium.albedo = 1.5 is out of range: 0 ..= 1"),
+            ("[medium]\nrho = -2\n", "medium.rho = -2 is out of range: 0 ..= 10000"),
+            ("[camera]\nfov_y_deg = 0\n", "camera.fov_y_deg = 0 is out of range: 1 ..= 170"),
             ("[render]\np = 0\n", "render.p = 0 is out of range: (0, 1]"),
         ];
         for (extra, msg) in cases {
@@ -552,10 +467,7 @@ mod tests {
             assert_eq!(e.to_string(), msg);
         }
         let s = SceneFile::from_toml_str("k = 0\n[grid]\nbuiltin = \"cumulus\"\n", "t").unwrap();
-        assert_eq!(
-            s.validate().unwrap_err().to_string(),
-            "k = 0 is out of range: 1 ..= 64"
-        );
+        assert_eq!(s.validate().unwrap_err().to_string(), "k = 0 is out of range: 1 ..= 64");
         let s = SceneFile::from_toml_str("[grid]\nbuiltin = \"cirrus\"\n", "t").unwrap();
         assert!(s.validate().unwrap_err().to_string().contains("cirrus"));
     }
@@ -567,17 +479,14 @@ mod tests {
         assert_eq!(CameraPreset::Backlit.view_direction(omega), -omega);
         assert_eq!(CameraPreset::Frontlit.view_direction(omega), omega);
         // Backlit with the sun straight down looks straight up: a valid camera.
-        let s =
-            SceneFile::from_toml_str(&format!("{MINIMAL}[camera]\npreset = \"backlit\"\n"), "t")
-                .unwrap();
+        let s = SceneFile::from_toml_str(&format!("{MINIMAL}[camera]\npreset = \"backlit\"\n"), "t").unwrap();
         let cam = s.build_camera().unwrap();
         assert!((cam.forward() - Vec3::Y).length() < 1e-6);
     }
 
     #[test]
     fn predict_mode_without_model_is_a_clear_error() {
-        let s = SceneFile::from_toml_str(&format!("{MINIMAL}[render]\nmode = \"predict\"\n"), "t")
-            .unwrap();
+        let s = SceneFile::from_toml_str(&format!("{MINIMAL}[render]\nmode = \"predict\"\n"), "t").unwrap();
         let e = s.integrator().unwrap_err().to_string();
         assert!(e.contains("needs a predictor"), "{e}");
     }

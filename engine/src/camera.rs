@@ -41,13 +41,8 @@ impl Camera {
         if !(position.is_finite() && target.is_finite()) {
             return Err(CameraError::Degenerate);
         }
-        let forward = (target - position)
-            .try_normalize()
-            .ok_or(CameraError::Degenerate)?;
-        let right = forward
-            .cross(up)
-            .try_normalize()
-            .ok_or(CameraError::UpParallel)?;
+        let forward = (target - position).try_normalize().ok_or(CameraError::Degenerate)?;
+        let right = forward.cross(up).try_normalize().ok_or(CameraError::UpParallel)?;
         let true_up = right.cross(forward);
         if !(fov_y_deg > 0.0 && fov_y_deg <= 179.0) {
             return Err(CameraError::BadFov(fov_y_deg));
@@ -93,14 +88,7 @@ impl Camera {
 
     /// Same view at another resolution.
     pub fn with_resolution(&self, width: u32, height: u32) -> Result<Self, CameraError> {
-        Camera::new(
-            self.position,
-            self.target,
-            self.up,
-            self.fov_y_deg,
-            width,
-            height,
-        )
+        Camera::new(self.position, self.target, self.up, self.fov_y_deg, width, height)
     }
 
     /// Unit direction through the image-plane point (x, y) in pixels (continuous).
@@ -115,10 +103,7 @@ impl Camera {
     /// Ray through pixel (px, py), jittered uniformly within the pixel (box filter).
     #[inline]
     pub fn generate_ray(&self, px: u32, py: u32, jitter: Vec2) -> (Vec3, Vec3) {
-        (
-            self.position,
-            self.direction(Vec2::new(px as f32, py as f32) + jitter),
-        )
+        (self.position, self.direction(Vec2::new(px as f32, py as f32) + jitter))
     }
 }
 

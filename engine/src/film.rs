@@ -42,10 +42,7 @@ struct Layer {
 
 impl Layer {
     fn new(n: usize) -> Self {
-        Layer {
-            sum: vec![[0.0; 3]; n],
-            sum_sq: vec![[0.0; 3]; n],
-        }
+        Layer { sum: vec![[0.0; 3]; n], sum_sq: vec![[0.0; 3]; n] }
     }
 
     #[inline]
@@ -72,13 +69,7 @@ pub struct Film {
 impl Film {
     pub fn new(width: u32, height: u32) -> Self {
         let n = width as usize * height as usize;
-        Film {
-            width,
-            height,
-            spp: 0,
-            layers: std::array::from_fn(|_| Layer::new(n)),
-            rejected: 0,
-        }
+        Film { width, height, spp: 0, layers: std::array::from_fn(|_| Layer::new(n)), rejected: 0 }
     }
 
     pub fn width(&self) -> u32 {
@@ -100,11 +91,7 @@ impl Film {
     /// Adds one pass: exactly one sample for every pixel, in pixel order. A sample
     /// that is not finite never enters a buffer: it counts as zero and is recorded.
     pub fn add_pass(&mut self, samples: &[PathSample]) {
-        assert_eq!(
-            samples.len(),
-            self.pixel_count(),
-            "a pass covers every pixel once"
-        );
+        assert_eq!(samples.len(), self.pixel_count(), "a pass covers every pixel once");
         for (i, s) in samples.iter().enumerate() {
             let s = if s.is_finite() {
                 *s
@@ -143,16 +130,8 @@ impl Film {
 
     /// Per-pixel mean (the image) of a buffer.
     pub fn mean(&self, buffer: Buffer) -> Vec<[f32; 3]> {
-        let inv = if self.spp > 0 {
-            1.0 / self.spp as f64
-        } else {
-            0.0
-        };
-        self.layers[buffer.index()]
-            .sum
-            .iter()
-            .map(|s| s.map(|x| (x * inv) as f32))
-            .collect()
+        let inv = if self.spp > 0 { 1.0 / self.spp as f64 } else { 0.0 };
+        self.layers[buffer.index()].sum.iter().map(|s| s.map(|x| (x * inv) as f32)).collect()
     }
 
     /// Raw per-pixel sums (for exact comparisons in tests).
@@ -206,24 +185,10 @@ mod tests {
     #[test]
     fn rejects_non_finite_and_tracks_variance() {
         let mut f = Film::new(2, 1);
-        let good = PathSample {
-            direct: Vec3::ZERO,
-            low: Vec3::ONE,
-            high: Vec3::splat(2.0),
-        };
-        let bad = PathSample {
-            direct: Vec3::ZERO,
-            low: Vec3::NAN,
-            high: Vec3::ONE,
-        };
+        let good = PathSample { direct: Vec3::ZERO, low: Vec3::ONE, high: Vec3::splat(2.0) };
+        let bad = PathSample { direct: Vec3::ZERO, low: Vec3::NAN, high: Vec3::ONE };
         f.add_pass(&[good, bad]);
-        f.add_pass(&[
-            PathSample::default(),
-            PathSample {
-                high: Vec3::splat(f32::INFINITY),
-                ..good
-            },
-        ]);
+        f.add_pass(&[PathSample::default(), PathSample { high: Vec3::splat(f32::INFINITY), ..good }]);
         assert_eq!(f.rejected_samples(), 2);
         let m = f.mean(Buffer::Full);
         assert_eq!(m[0], [1.5; 3]);

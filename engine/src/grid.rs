@@ -20,11 +20,7 @@ pub enum GridError {
     #[error("grid dimensions must be at least 1 in every axis, got {0}x{1}x{2}")]
     EmptyDims(u32, u32, u32),
     #[error("grid of {dims:?} needs {expected} values, got {got}")]
-    LengthMismatch {
-        dims: [u32; 3],
-        expected: usize,
-        got: usize,
-    },
+    LengthMismatch { dims: [u32; 3], expected: usize, got: usize },
     #[error("grid voxel size must be finite and positive in every axis, got {0:?}")]
     BadVoxelSize([f32; 3]),
     #[error("grid origin must be finite, got {0:?}")]
@@ -86,22 +82,13 @@ pub struct DensityGrid {
 impl DensityGrid {
     /// Builds a grid from values (x fastest), rejecting NaN, infinity and negative
     /// values with the first bad voxel named.
-    pub fn new(
-        dims: UVec3,
-        data: Vec<f32>,
-        origin: Vec3,
-        voxel_size: Vec3,
-    ) -> Result<Self, GridError> {
+    pub fn new(dims: UVec3, data: Vec<f32>, origin: Vec3, voxel_size: Vec3) -> Result<Self, GridError> {
         if dims.min_element() == 0 {
             return Err(GridError::EmptyDims(dims.x, dims.y, dims.z));
         }
         let expected = dims.x as usize * dims.y as usize * dims.z as usize;
         if data.len() != expected {
-            return Err(GridError::LengthMismatch {
-                dims: dims.to_array(),
-                expected,
-                got: data.len(),
-            });
+            return Err(GridError::LengthMismatch { dims: dims.to_array(), expected, got: data.len() });
         }
         if !voxel_size.is_finite() || voxel_size.min_element() <= 0.0 {
             return Err(GridError::BadVoxelSize(voxel_size.to_array()));
@@ -121,25 +108,13 @@ impl DensityGrid {
             }
             max_value = max_value.max(v);
         }
-        Ok(DensityGrid {
-            dims,
-            data,
-            origin,
-            voxel_size,
-            inv_voxel_size: voxel_size.recip(),
-            max_value,
-        })
+        Ok(DensityGrid { dims, data, origin, voxel_size, inv_voxel_size: voxel_size.recip(), max_value })
     }
 
     /// Builds a grid whose voxels exactly tile `bounds`.
     pub fn from_bounds(dims: UVec3, data: Vec<f32>, bounds: Bounds3) -> Result<Self, GridError> {
-        if !(bounds.min.is_finite() && bounds.max.is_finite())
-            || bounds.extent().min_element() <= 0.0
-        {
-            return Err(GridError::BadBounds {
-                min: bounds.min.to_array(),
-                max: bounds.max.to_array(),
-            });
+        if !(bounds.min.is_finite() && bounds.max.is_finite()) || bounds.extent().min_element() <= 0.0 {
+            return Err(GridError::BadBounds { min: bounds.min.to_array(), max: bounds.max.to_array() });
         }
         if dims.min_element() == 0 {
             return Err(GridError::EmptyDims(dims.x, dims.y, dims.z));
@@ -149,11 +124,7 @@ impl DensityGrid {
     }
 
     /// Samples `f(world position of the voxel centre)` on every voxel of `bounds`.
-    pub fn from_fn(
-        dims: UVec3,
-        bounds: Bounds3,
-        f: impl Fn(Vec3) -> f32 + Sync,
-    ) -> Result<Self, GridError> {
+    pub fn from_fn(dims: UVec3, bounds: Bounds3, f: impl Fn(Vec3) -> f32 + Sync) -> Result<Self, GridError> {
         use rayon::prelude::*;
         let vs = bounds.extent() / dims.as_vec3();
         let n = dims.x as usize * dims.y as usize * dims.z as usize;
@@ -186,10 +157,7 @@ impl DensityGrid {
 
     /// The box tiled by the voxels.
     pub fn bounds(&self) -> Bounds3 {
-        Bounds3::new(
-            self.origin,
-            self.origin + self.dims.as_vec3() * self.voxel_size,
-        )
+        Bounds3::new(self.origin, self.origin + self.dims.as_vec3() * self.voxel_size)
     }
 
     /// Where the interpolated density can be non-zero: bounds grown by half a voxel.
@@ -200,20 +168,13 @@ impl DensityGrid {
 
     #[inline]
     pub fn voxel(&self, x: u32, y: u32, z: u32) -> f32 {
-        self.data
-            [(x as usize) + self.dims.x as usize * (y as usize + self.dims.y as usize * z as usize)]
+        self.data[(x as usize) + self.dims.x as usize * (y as usize + self.dims.y as usize * z as usize)]
     }
 
     /// Voxel value with zero outside the index range.
     #[inline]
     fn voxel_or_zero(&self, x: i32, y: i32, z: i32) -> f32 {
-        if x < 0
-            || y < 0
-            || z < 0
-            || x >= self.dims.x as i32
-            || y >= self.dims.y as i32
-            || z >= self.dims.z as i32
-        {
+        if x < 0 || y < 0 || z < 0 || x >= self.dims.x as i32 || y >= self.dims.y as i32 || z >= self.dims.z as i32 {
             0.0
         } else {
             self.voxel(x as u32, y as u32, z as u32)
@@ -294,11 +255,7 @@ pub fn floor_i32(x: f32) -> i32 {
 fn unflatten(i: usize, dims: UVec3) -> (u32, u32, u32) {
     let nx = dims.x as usize;
     let ny = dims.y as usize;
-    (
-        (i % nx) as u32,
-        ((i / nx) % ny) as u32,
-        (i / (nx * ny)) as u32,
-    )
+    ((i % nx) as u32, ((i / nx) % ny) as u32, (i / (nx * ny)) as u32)
 }
 
 #[cfg(test)]
@@ -319,21 +276,10 @@ mod tests {
         let mut data = vec![0.5f32; 27];
         data[1 + 3 * (2 + 3 * 1)] = f32::NAN;
         let e = DensityGrid::new(UVec3::splat(3), data.clone(), Vec3::ZERO, Vec3::ONE).unwrap_err();
-        assert_eq!(
-            e.to_string(),
-            "grid value at voxel (1, 2, 1) is NaN: densities must be finite"
-        );
+        assert_eq!(e.to_string(), "grid value at voxel (1, 2, 1) is NaN: densities must be finite");
         data[1 + 3 * (2 + 3 * 1)] = -0.25;
         let e = DensityGrid::new(UVec3::splat(3), data.clone(), Vec3::ZERO, Vec3::ONE).unwrap_err();
-        assert!(matches!(
-            e,
-            GridError::Negative {
-                x: 1,
-                y: 2,
-                z: 1,
-                ..
-            }
-        ));
+        assert!(matches!(e, GridError::Negative { x: 1, y: 2, z: 1, .. }));
         data[1 + 3 * (2 + 3 * 1)] = f32::INFINITY;
         assert!(matches!(
             DensityGrid::new(UVec3::splat(3), data, Vec3::ZERO, Vec3::ONE),
@@ -341,15 +287,7 @@ mod tests {
         ));
         assert!(DensityGrid::new(UVec3::new(2, 0, 2), vec![], Vec3::ZERO, Vec3::ONE).is_err());
         assert!(DensityGrid::new(UVec3::splat(2), vec![0.0; 7], Vec3::ZERO, Vec3::ONE).is_err());
-        assert!(
-            DensityGrid::new(
-                UVec3::splat(2),
-                vec![0.0; 8],
-                Vec3::ZERO,
-                Vec3::new(1.0, 0.0, 1.0)
-            )
-            .is_err()
-        );
+        assert!(DensityGrid::new(UVec3::splat(2), vec![0.0; 8], Vec3::ZERO, Vec3::new(1.0, 0.0, 1.0)).is_err());
     }
 
     #[test]
@@ -364,11 +302,7 @@ mod tests {
         let lo = b.min + 0.5 * vs;
         let hi = b.max - 0.5 * vs;
         for i in 0..50 {
-            let t = Vec3::new(
-                (i as f32 * 0.37) % 1.0,
-                (i as f32 * 0.61) % 1.0,
-                (i as f32 * 0.13) % 1.0,
-            );
+            let t = Vec3::new((i as f32 * 0.37) % 1.0, (i as f32 * 0.61) % 1.0, (i as f32 * 0.13) % 1.0);
             let p = lo + t * (hi - lo);
             assert!((g.lookup(p) - f(p)).abs() < 1e-4, "{p}");
         }

@@ -47,12 +47,7 @@ pub struct RenderSettings {
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        RenderSettings {
-            seed: 0,
-            k: 1,
-            max_order: None,
-            mode: Mode::Reference,
-        }
+        RenderSettings { seed: 0, k: 1, max_order: None, mode: Mode::Reference }
     }
 }
 
@@ -98,10 +93,7 @@ impl std::fmt::Debug for Integrator {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Integrator")
             .field("settings", &self.settings)
-            .field(
-                "predictor",
-                &self.predictor.as_ref().map(|p| p.name().to_string()),
-            )
+            .field("predictor", &self.predictor.as_ref().map(|p| p.name().to_string()))
             .finish()
     }
 }
@@ -122,10 +114,7 @@ impl Integrator {
                 return Err(IntegratorError::NoPredictor);
             }
         }
-        Ok(Integrator {
-            settings,
-            predictor,
-        })
+        Ok(Integrator { settings, predictor })
     }
 
     pub fn settings(&self) -> &RenderSettings {
@@ -149,21 +138,9 @@ impl Integrator {
             FreeFlight::Escaped => out.direct = scene.sky.radiance,
             FreeFlight::Collision { t } => {
                 let k = self.settings.k;
-                self.scatter_from(
-                    scene,
-                    o + d * t,
-                    -d,
-                    1,
-                    scene.medium.albedo(),
-                    rng,
-                    &mut |order, v| {
-                        if order >= k {
-                            out.high += v
-                        } else {
-                            out.low += v
-                        }
-                    },
-                );
+                self.scatter_from(scene, o + d * t, -d, 1, scene.medium.albedo(), rng, &mut |order, v| {
+                    if order >= k { out.high += v } else { out.low += v }
+                });
             }
         }
         out

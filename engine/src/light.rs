@@ -28,21 +28,14 @@ pub struct Sun {
 
 impl Sun {
     pub fn new(direction: Vec3, radiance: Vec3, angular_radius: f32) -> Result<Self, LightError> {
-        let direction = direction
-            .try_normalize()
-            .ok_or(LightError::BadDirection(direction.to_array()))?;
+        let direction = direction.try_normalize().ok_or(LightError::BadDirection(direction.to_array()))?;
         if !(radiance.is_finite() && radiance.min_element() >= 0.0) {
             return Err(LightError::BadRadiance(radiance.to_array()));
         }
         if !(0.0..=0.5).contains(&angular_radius) {
             return Err(LightError::BadAngularRadius(angular_radius));
         }
-        Ok(Sun {
-            direction,
-            radiance,
-            angular_radius,
-            cos_max: angular_radius.cos(),
-        })
+        Ok(Sun { direction, radiance, angular_radius, cos_max: angular_radius.cos() })
     }
 
     /// Sun from elevation above the horizon and azimuth about +y (degrees); the

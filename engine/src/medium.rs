@@ -59,12 +59,7 @@ impl MajorantGrid {
                 }
             }
         }
-        MajorantGrid {
-            dims,
-            max_density,
-            bounds: support,
-            inv_cell_size: cell_size.recip(),
-        }
+        MajorantGrid { dims, max_density, bounds: support, inv_cell_size: cell_size.recip() }
     }
 
     pub fn dims(&self) -> UVec3 {
@@ -73,8 +68,7 @@ impl MajorantGrid {
 
     #[inline]
     fn cell(&self, c: IVec3) -> f32 {
-        self.max_density
-            [(c.x as u32 + self.dims.x * (c.y as u32 + self.dims.y * c.z as u32)) as usize]
+        self.max_density[(c.x as u32 + self.dims.x * (c.y as u32 + self.dims.y * c.z as u32)) as usize]
     }
 
     /// Iterates the segments of the ray `o + t d`, t in [t_min, t_max], over the
@@ -109,17 +103,7 @@ impl MajorantGrid {
                 stop[a] = i32::MIN;
             }
         }
-        MajorantIter {
-            grid: self,
-            cell,
-            step,
-            stop,
-            next_t,
-            delta_t,
-            t: t0,
-            t_end: t1,
-            done: false,
-        }
+        MajorantIter { grid: self, cell, step, stop, next_t, delta_t, t: t0, t_end: t1, done: false }
     }
 }
 
@@ -176,11 +160,7 @@ impl Iterator for MajorantIter<'_> {
             2
         };
         let exit = self.next_t[axis].min(self.t_end);
-        let seg = MajorantSegment {
-            t_min: self.t,
-            t_max: exit,
-            max_density: self.grid.cell(self.cell),
-        };
+        let seg = MajorantSegment { t_min: self.t, t_max: exit, max_density: self.grid.cell(self.cell) };
         self.t = exit;
         if exit >= self.t_end {
             self.done = true;
@@ -227,12 +207,7 @@ pub struct Medium {
 const RATIO_TRACKING_RR_THRESHOLD: f32 = 0.1;
 
 impl Medium {
-    pub fn new(
-        grid: Arc<DensityGrid>,
-        rho: f32,
-        albedo: f32,
-        phase: PhaseFunction,
-    ) -> Result<Self, MediumError> {
+    pub fn new(grid: Arc<DensityGrid>, rho: f32, albedo: f32, phase: PhaseFunction) -> Result<Self, MediumError> {
         Self::with_majorant_cells(grid, rho, albedo, phase, MajorantGrid::DEFAULT_CELL_VOXELS)
     }
 
@@ -250,13 +225,7 @@ impl Medium {
             return Err(MediumError::BadAlbedo(albedo));
         }
         let majorant = MajorantGrid::new(&grid, cell_voxels);
-        Ok(Medium {
-            grid,
-            majorant,
-            rho,
-            albedo,
-            phase,
-        })
+        Ok(Medium { grid, majorant, rho, albedo, phase })
     }
 
     pub fn grid(&self) -> &Arc<DensityGrid> {
@@ -307,10 +276,7 @@ impl Medium {
                 }
                 let p = o + d * t;
                 let sigma_t = self.sigma_t(p);
-                debug_assert!(
-                    sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6,
-                    "majorant {sigma_maj} < sigma_t {sigma_t}"
-                );
+                debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
                 if !f(t, p, sigma_t, sigma_maj, rng) {
                     return false;
                 }
@@ -395,10 +361,7 @@ impl Medium {
     /// Distance from `o` along `d` to where the ray leaves the medium's support, or
     /// 0 if it starts outside and misses.
     pub fn exit_distance(&self, o: Vec3, d: Vec3) -> f32 {
-        self.bounds()
-            .intersect(o, d.recip(), 0.0, f32::INFINITY)
-            .map(|(_, t1)| t1)
-            .unwrap_or(0.0)
+        self.bounds().intersect(o, d.recip(), 0.0, f32::INFINITY).map(|(_, t1)| t1).unwrap_or(0.0)
     }
 }
 
@@ -408,21 +371,8 @@ mod tests {
 
     fn random_grid(n: u32, seed: u64) -> DensityGrid {
         let mut rng = Rng::new(seed, 0, 0);
-        let data: Vec<f32> = (0..n * n * n)
-            .map(|_| {
-                if rng.uniform() < 0.3 {
-                    0.0
-                } else {
-                    rng.uniform()
-                }
-            })
-            .collect();
-        DensityGrid::from_bounds(
-            UVec3::splat(n),
-            data,
-            Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)),
-        )
-        .unwrap()
+        let data: Vec<f32> = (0..n * n * n).map(|_| if rng.uniform() < 0.3 { 0.0 } else { rng.uniform() }).collect();
+        DensityGrid::from_bounds(UVec3::splat(n), data, Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5))).unwrap()
     }
 
     /// The majorant bounds the interpolated density everywhere, including the
@@ -434,12 +384,9 @@ mod tests {
             let m = MajorantGrid::new(&g, cells);
             let mut rng = Rng::new(9, cells as u64, 0);
             for _ in 0..20_000 {
-                let p = m.bounds.min
-                    + Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * m.bounds.extent();
-                let c = ((p - m.bounds.min) * m.inv_cell_size)
-                    .floor()
-                    .as_ivec3()
-                    .clamp(IVec3::ZERO, m.dims.as_ivec3() - 1);
+                let p = m.bounds.min + Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * m.bounds.extent();
+                let c =
+                    ((p - m.bounds.min) * m.inv_cell_size).floor().as_ivec3().clamp(IVec3::ZERO, m.dims.as_ivec3() - 1);
                 assert!(g.lookup(p) <= m.cell(c) + 1e-6, "cells={cells} p={p}");
             }
         }
@@ -461,10 +408,7 @@ mod tests {
                 Some((t0, t1)) => {
                     assert!(!segs.is_empty());
                     assert!((segs[0].t_min - t0).abs() < 1e-5);
-                    assert!(
-                        (segs.last().unwrap().t_max - t1).abs() < 1e-4,
-                        "{segs:?} {t1}"
-                    );
+                    assert!((segs.last().unwrap().t_max - t1).abs() < 1e-4, "{segs:?} {t1}");
                     for w in segs.windows(2) {
                         assert_eq!(w[0].t_max, w[1].t_min);
                     }

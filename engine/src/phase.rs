@@ -205,11 +205,7 @@ mod tests {
         for p in all() {
             // E[cos_s] with cos_s = -cos_theta.
             let m = integrate(|c| -c * 2.0 * std::f64::consts::PI * p.eval_cos(c as f32) as f64);
-            assert!(
-                (m - p.mean_cosine() as f64).abs() < 1e-4,
-                "{p:?}: {m} vs {}",
-                p.mean_cosine()
-            );
+            assert!((m - p.mean_cosine() as f64).abs() < 1e-4, "{p:?}: {m} vs {}", p.mean_cosine());
         }
     }
 
@@ -217,11 +213,7 @@ mod tests {
     fn forward_orientation() {
         // Straight-on continuation (wi = -wo) must be the most likely for g > 0.
         let wo = Vec3::new(0.0, 0.0, 1.0);
-        for p in [
-            PhaseFunction::HenyeyGreenstein { g: 0.85 },
-            PhaseFunction::Hazy,
-            PhaseFunction::Murky,
-        ] {
+        for p in [PhaseFunction::HenyeyGreenstein { g: 0.85 }, PhaseFunction::Hazy, PhaseFunction::Murky] {
             assert!(p.eval(wo, -wo) > 5.0 * p.eval(wo, wo), "{p:?} not forward");
             // Samples continue forward on average.
             let mut sum = 0.0;
@@ -246,10 +238,7 @@ mod tests {
             for u0 in [0.0f32, 1.0 - f32::EPSILON, 0.5] {
                 for u1 in [0.0f32, 1.0 - f32::EPSILON] {
                     let s = p.sample(wo, Vec2::new(u0, u1));
-                    assert!(
-                        s.wi.is_finite() && s.pdf.is_finite() && s.pdf > 0.0,
-                        "{p:?} u=({u0},{u1}) {s:?}"
-                    );
+                    assert!(s.wi.is_finite() && s.pdf.is_finite() && s.pdf > 0.0, "{p:?} u=({u0},{u1}) {s:?}");
                     assert!((s.wi.length() - 1.0).abs() < 1e-4);
                 }
             }
@@ -294,10 +283,7 @@ mod tests {
             // (Simpson, in the scattering angle cos_s = -cos_theta).
             let mut expected = vec![0.0f64; n_cos * n_phi];
             for ic in 0..n_cos {
-                let (c0, c1) = (
-                    -1.0 + 2.0 * ic as f64 / n_cos as f64,
-                    -1.0 + 2.0 * (ic + 1) as f64 / n_cos as f64,
-                );
+                let (c0, c1) = (-1.0 + 2.0 * ic as f64 / n_cos as f64, -1.0 + 2.0 * (ic + 1) as f64 / n_cos as f64);
                 let m = 200;
                 let h = (c1 - c0) / m as f64;
                 let f = |c: f64| p.eval_cos(-c as f32) as f64;
@@ -311,13 +297,7 @@ mod tests {
                 }
             }
             let r = chi2_test(&observed, &expected, 5.0);
-            assert!(
-                r.p_value > alpha,
-                "{p:?}: chi2 = {:.1}, dof = {}, p = {:.3e}",
-                r.statistic,
-                r.dof,
-                r.p_value
-            );
+            assert!(r.p_value > alpha, "{p:?}: chi2 = {:.1}, dof = {}, p = {:.3e}", r.statistic, r.dof, r.p_value);
         }
     }
 }

@@ -77,12 +77,7 @@ impl Renderer {
                 tiles.push((x0, y0, (x0 + TILE_SIZE).min(w), (y0 + TILE_SIZE).min(h)));
             }
         }
-        Ok(Renderer {
-            film: Arc::new(RwLock::new(Film::new(w, h))),
-            scene,
-            integrator,
-            tiles,
-        })
+        Ok(Renderer { film: Arc::new(RwLock::new(Film::new(w, h))), scene, integrator, tiles })
     }
 
     pub fn scene(&self) -> &Arc<Scene> {
@@ -112,21 +107,13 @@ impl Renderer {
         let Some(samples) = self.render_pass_samples(pass, control, generation) else {
             return PassOutcome::Cancelled;
         };
-        self.film
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .add_pass(&samples);
+        self.film.write().unwrap_or_else(|e| e.into_inner()).add_pass(&samples);
         PassOutcome::Completed
     }
 
     /// Renders pass number `pass` and returns its samples in pixel order, or None if
     /// cancelled.
-    pub fn render_pass_samples(
-        &self,
-        pass: u32,
-        control: &RenderControl,
-        generation: u64,
-    ) -> Option<Vec<PathSample>> {
+    pub fn render_pass_samples(&self, pass: u32, control: &RenderControl, generation: u64) -> Option<Vec<PathSample>> {
         let camera = &self.scene.camera;
         let (w, h) = (camera.width(), camera.height());
         let seed = self.integrator.settings().seed;
@@ -142,8 +129,7 @@ impl Renderer {
                     for x in x0..x1 {
                         let pixel = y as u64 * w as u64 + x as u64;
                         let mut rng = Rng::new(seed, pass as u64, pixel);
-                        let (o, d) =
-                            camera.generate_ray(x, y, Vec2::new(rng.uniform(), rng.uniform()));
+                        let (o, d) = camera.generate_ray(x, y, Vec2::new(rng.uniform(), rng.uniform()));
                         out.push(self.integrator.trace(&self.scene, o, d, &mut rng));
                     }
                 }

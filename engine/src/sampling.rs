@@ -57,10 +57,7 @@ pub fn coordinate_system(n: Vec3) -> (Vec3, Vec3) {
     let sign = 1.0f32.copysign(n.z);
     let a = -1.0 / (sign + n.z);
     let b = n.x * n.y * a;
-    (
-        Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x),
-        Vec3::new(b, sign + n.y * n.y * a, -n.y),
-    )
+    (Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x), Vec3::new(b, sign + n.y * n.y * a, -n.y))
 }
 
 /// Maps a direction given in the local frame around `n` (local +z = n) to world space.
@@ -92,12 +89,7 @@ mod tests {
 
     #[test]
     fn frames_are_orthonormal() {
-        for n in [
-            Vec3::Z,
-            -Vec3::Z,
-            Vec3::X,
-            Vec3::new(0.3, -0.5, 0.8).normalize(),
-        ] {
+        for n in [Vec3::Z, -Vec3::Z, Vec3::X, Vec3::new(0.3, -0.5, 0.8).normalize()] {
             let (t, b) = coordinate_system(n);
             assert!(t.dot(b).abs() < 1e-6 && t.dot(n).abs() < 1e-6 && b.dot(n).abs() < 1e-6);
             assert!((t.length() - 1.0).abs() < 1e-6 && (b.length() - 1.0).abs() < 1e-6);
@@ -139,11 +131,7 @@ mod chi2_tests {
             let exp = vec![n as f64 / (nc * np) as f64; nc * np];
             let r = chi2_test(&obs, &exp, 5.0);
             assert!(r.p_value > alpha, "cos_max {cos_max}: {r:?}");
-            let pdf = if cos_max == -1.0 {
-                uniform_sphere_pdf()
-            } else {
-                uniform_cone_pdf(cos_max)
-            };
+            let pdf = if cos_max == -1.0 { uniform_sphere_pdf() } else { uniform_cone_pdf(cos_max) };
             assert!((pdf * 2.0 * PI * (1.0 - cos_max) - 1.0).abs() < 1e-3);
         }
     }

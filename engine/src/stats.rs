@@ -112,11 +112,7 @@ pub fn chi2_test(observed: &[f64], expected: &[f64], min_expected: f64) -> Chi2 
             }
         } else {
             if observed[i] > 0.0 && expected[i] == 0.0 {
-                return Chi2 {
-                    statistic: f64::INFINITY,
-                    dof: 1,
-                    p_value: 0.0,
-                };
+                return Chi2 { statistic: f64::INFINITY, dof: 1, p_value: 0.0 };
             }
             stat += (observed[i] - expected[i]) * (observed[i] - expected[i]) / expected[i];
             cells += 1;
@@ -126,18 +122,10 @@ pub fn chi2_test(observed: &[f64], expected: &[f64], min_expected: f64) -> Chi2 
         stat += (pool_o - pool_e) * (pool_o - pool_e) / pool_e;
         cells += 1;
     } else if pool_o > 0.0 {
-        return Chi2 {
-            statistic: f64::INFINITY,
-            dof: 1,
-            p_value: 0.0,
-        };
+        return Chi2 { statistic: f64::INFINITY, dof: 1, p_value: 0.0 };
     }
     let dof = cells.saturating_sub(1).max(1);
-    Chi2 {
-        statistic: stat,
-        dof,
-        p_value: chi2_sf(stat, dof as f64),
-    }
+    Chi2 { statistic: stat, dof, p_value: chi2_sf(stat, dof as f64) }
 }
 
 /// Per-test significance so that `m` independent tests have family-wise level `alpha`.
@@ -157,13 +145,8 @@ pub fn normal_quantile(p: f64) -> f64 {
         -3.066479806614716e1,
         2.506628277459239,
     ];
-    const B: [f64; 5] = [
-        -5.447609879822406e1,
-        1.615858368580409e2,
-        -1.556989798598866e2,
-        6.680131188771972e1,
-        -1.328068155288572e1,
-    ];
+    const B: [f64; 5] =
+        [-5.447609879822406e1, 1.615858368580409e2, -1.556989798598866e2, 6.680131188771972e1, -1.328068155288572e1];
     const C: [f64; 6] = [
         -7.784894002430293e-3,
         -3.223964580411365e-1,
@@ -172,12 +155,7 @@ pub fn normal_quantile(p: f64) -> f64 {
         4.374664141464968,
         2.938163982698783,
     ];
-    const D: [f64; 4] = [
-        7.784695709041462e-3,
-        3.224671290700398e-1,
-        2.445134137142996,
-        3.754408661907416,
-    ];
+    const D: [f64; 4] = [7.784695709041462e-3, 3.224671290700398e-1, 2.445134137142996, 3.754408661907416];
     let pl = 0.02425;
     let x = if p < pl {
         let q = (-2.0 * p.ln()).sqrt();
@@ -211,8 +189,7 @@ pub fn erfc(x: f64) -> f64 {
                     + t * (0.09678418
                         + t * (-0.18628806
                             + t * (0.27886807
-                                + t * (-1.13520398
-                                    + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))))))))
+                                + t * (-1.13520398 + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))))))))
             .exp();
     if x >= 0.0 { r } else { 2.0 - r }
 }
@@ -248,11 +225,7 @@ impl Welford {
         self.n = n;
     }
     pub fn variance(&self) -> f64 {
-        if self.n < 2 {
-            0.0
-        } else {
-            self.m2 / (self.n - 1) as f64
-        }
+        if self.n < 2 { 0.0 } else { self.m2 / (self.n - 1) as f64 }
     }
     /// Standard error of the mean.
     pub fn std_error(&self) -> f64 {
@@ -292,9 +265,7 @@ mod tests {
     #[test]
     fn chi2_detects_wrong_distribution() {
         let expected = vec![1000.0; 10];
-        let fair: Vec<f64> = vec![
-            1010.0, 990.0, 1005.0, 995.0, 1000.0, 1020.0, 980.0, 1000.0, 1003.0, 997.0,
-        ];
+        let fair: Vec<f64> = vec![1010.0, 990.0, 1005.0, 995.0, 1000.0, 1020.0, 980.0, 1000.0, 1003.0, 997.0];
         assert!(chi2_test(&fair, &expected, 5.0).p_value > 0.5);
         let skewed: Vec<f64> = (0..10).map(|i| 800.0 + 40.0 * i as f64).collect();
         assert!(chi2_test(&skewed, &expected, 5.0).p_value < 1e-6);

@@ -11,10 +11,7 @@ pub fn slab_grid(ny: u32, thickness: f32) -> DensityGrid {
     DensityGrid::from_bounds(
         UVec3::new(nx, ny, nz),
         vec![1.0; (nx * ny * nz) as usize],
-        Bounds3::new(
-            Vec3::new(-2.0, -0.5 * thickness, -2.0),
-            Vec3::new(2.0, 0.5 * thickness, 2.0),
-        ),
+        Bounds3::new(Vec3::new(-2.0, -0.5 * thickness, -2.0), Vec3::new(2.0, 0.5 * thickness, 2.0)),
     )
     .unwrap()
 }
@@ -45,14 +42,6 @@ pub fn cumulus_scene(
         medium: Medium::new(grid, rho, albedo, phase).unwrap(),
         sun,
         sky: Sky { radiance: sky },
-        camera: Camera::new(
-            Vec3::new(0.0, 0.0, 2.6),
-            Vec3::ZERO,
-            Vec3::Y,
-            30.0,
-            size,
-            size,
-        )
-        .unwrap(),
+        camera: Camera::new(Vec3::new(0.0, 0.0, 2.6), Vec3::ZERO, Vec3::Y, 30.0, size, size).unwrap(),
     }
 }

@@ -46,7 +46,8 @@ fn render_writes_layered_exr_and_png() {
     let (w, h, layers) = read_exr(&exr).unwrap();
     assert_eq!((w, h), (24, 16));
     let layer = |n: &str| &layers.iter().find(|l| l.name == n).unwrap_or_else(|| panic!("no layer {n}")).rgb;
-    let (full, direct, low, high, var) = (layer("full"), layer("direct"), layer("low"), layer("high"), layer("variance"));
+    let (full, direct, low, high, var) =
+        (layer("full"), layer("direct"), layer("low"), layer("high"), layer("variance"));
     for i in 0..full.len() {
         for c in 0..3 {
             assert!(full[i][c].is_finite() && var[i][c] >= 0.0);
@@ -60,7 +61,8 @@ fn render_writes_layered_exr_and_png() {
     let png_bytes = std::fs::read(&png).unwrap();
     assert_eq!(&png_bytes[..8], b"\x89PNG\r\n\x1a\n");
     // No temporaries left behind.
-    let names: Vec<String> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    let names: Vec<String> =
+        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
     assert!(names.iter().all(|n| !n.ends_with(".tmp")), "{names:?}");
 
     // OpenEXR's own tools read it (CI installs them; elsewhere the check is skipped).

@@ -4,8 +4,8 @@
 
 use engine::stats::{Welford, z_bound};
 use engine::{
-    Buffer, Film, InScatterPredictor, Integrator, Medium, Mode, PhaseFunction, RenderControl,
-    RenderSettings, Renderer, Rng, Scene, Sun,
+    Buffer, Film, InScatterPredictor, Integrator, Medium, Mode, PhaseFunction, RenderControl, RenderSettings, Renderer,
+    Rng, Scene, Sun,
 };
 use glam::Vec3;
 use nimbus_tests::{cumulus_scene, sphere_grid};
@@ -17,8 +17,7 @@ fn render(
     predictor: Option<Arc<dyn InScatterPredictor>>,
     spp: u32,
 ) -> Film {
-    let mut r =
-        Renderer::new(scene.clone(), Integrator::new(settings, predictor).unwrap()).unwrap();
+    let mut r = Renderer::new(scene.clone(), Integrator::new(settings, predictor).unwrap()).unwrap();
     let control = RenderControl::new();
     for _ in 0..spp {
         r.render_pass(&control, 0);
@@ -40,16 +39,7 @@ fn white_furnace() {
     .enumerate()
     {
         let scene = Arc::new(cumulus_scene(32, 30.0, 1.0, phase, None, Vec3::ONE, 24));
-        let film = render(
-            &scene,
-            RenderSettings {
-                seed: i as u64,
-                k: 3,
-                ..Default::default()
-            },
-            None,
-            16,
-        );
+        let film = render(&scene, RenderSettings { seed: i as u64, k: 3, ..Default::default() }, None, 16);
         let full = film.mean(Buffer::Full);
         for p in &full {
             for c in p {
@@ -59,16 +49,12 @@ fn white_furnace() {
         // And the light really went through the cloud: some pixels got it from
         // scattered paths (low + high), not only straight through (direct).
         let high = film.mean(Buffer::High);
-        assert!(
-            high.iter().any(|p| p[0] > 0.5),
-            "{phase:?}: the cloud was missed"
-        );
+        assert!(high.iter().any(|p| p[0] > 0.5), "{phase:?}: the cloud was missed");
         // In-scattered radiance at a point inside is 1 too.
         let integ = Integrator::new(RenderSettings::default(), None).unwrap();
         let mut rng = Rng::new(3, i as u64, 0);
         for _ in 0..1000 {
-            let li =
-                integ.in_scattered_radiance(&scene, Vec3::new(0.0, -0.1, 0.0), Vec3::X, &mut rng);
+            let li = integ.in_scattered_radiance(&scene, Vec3::new(0.0, -0.1, 0.0), Vec3::X, &mut rng);
             assert!((li - Vec3::ONE).abs().max_element() < 1e-5);
         }
     }
@@ -88,30 +74,13 @@ fn single_scattering_matches_quadrature() {
         medium: medium.clone(),
         sun: Some(sun),
         sky: Default::default(),
-        camera: engine::Camera::new(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO, Vec3::Y, 30.0, 8, 8)
-            .unwrap(),
+        camera: engine::Camera::new(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO, Vec3::Y, 30.0, 8, 8).unwrap(),
     };
-    let integ = Integrator::new(
-        RenderSettings {
-            max_order: Some(1),
-            ..Default::default()
-        },
-        None,
-    )
-    .unwrap();
-    let rays = [
-        (0.0f32, 0.0f32),
-        (0.2, 0.1),
-        (-0.3, -0.2),
-        (0.1, 0.38),
-        (-0.05, -0.41),
-    ];
+    let integ = Integrator::new(RenderSettings { max_order: Some(1), ..Default::default() }, None).unwrap();
+    let rays = [(0.0f32, 0.0f32), (0.2, 0.1), (-0.3, -0.2), (0.1, 0.38), (-0.05, -0.41)];
     let z = z_bound(0.01, rays.len());
     let quad = |o: Vec3, d: Vec3, h: f32| -> f64 {
-        let (t0, t1) = medium
-            .bounds()
-            .intersect(o, d.recip(), 0.0, f32::INFINITY)
-            .unwrap();
+        let (t0, t1) = medium.bounds().intersect(o, d.recip(), 0.0, f32::INFINITY).unwrap();
         let n = ((t1 - t0) / h).ceil() as usize;
         let h = (t1 - t0) / n as f32;
         let (mut tau_cam, mut sum) = (0.0f64, 0.0f64);
@@ -121,8 +90,7 @@ fn single_scattering_matches_quadrature() {
             let x = o + d * (t0 + (i as f32 + 0.5) * h);
             let sigma = medium.sigma_t(x) as f64;
             let tau_mid = tau_cam + 0.5 * sigma * h as f64;
-            let t_sun =
-                (-(medium.optical_depth(x, wi, f32::INFINITY, h, f32::INFINITY) as f64)).exp();
+            let t_sun = (-(medium.optical_depth(x, wi, f32::INFINITY, h, f32::INFINITY) as f64)).exp();
             sum += albedo as f64 * sigma * (-tau_mid).exp() * p * t_sun * h as f64;
             tau_cam += sigma * h as f64;
         }
@@ -142,12 +110,7 @@ fn single_scattering_matches_quadrature() {
             w.add(s.full().x as f64);
         }
         let tol = z * w.std_error() + q_err;
-        assert!(
-            (w.mean - q).abs() < tol,
-            "ray {i}: MC {} +- {} vs quadrature {q} (+- {q_err})",
-            w.mean,
-            w.std_error()
-        );
+        assert!((w.mean - q).abs() < tol, "ray {i}: MC {} +- {} vs quadrature {q} (+- {q_err})", w.mean, w.std_error());
         assert!(q > 1e-3, "ray {i} sees light");
     }
 }
@@ -169,51 +132,21 @@ fn buffers_split_by_order() {
     ));
     let films: Vec<(u32, Film)> = [1u32, 2, 4, 8]
         .iter()
-        .map(|&k| {
-            (
-                k,
-                render(
-                    &scene,
-                    RenderSettings {
-                        seed: 9,
-                        k,
-                        ..Default::default()
-                    },
-                    None,
-                    4,
-                ),
-            )
-        })
+        .map(|&k| (k, render(&scene, RenderSettings { seed: 9, k, ..Default::default() }, None, 4)))
         .collect();
     for (k, f) in &films {
-        let (d, l, h, full) = (
-            f.sums(Buffer::Direct),
-            f.sums(Buffer::Low),
-            f.sums(Buffer::High),
-            f.sums(Buffer::Full),
-        );
+        let (d, l, h, full) = (f.sums(Buffer::Direct), f.sums(Buffer::Low), f.sums(Buffer::High), f.sums(Buffer::Full));
         for i in 0..full.len() {
             for c in 0..3 {
                 let sum = d[i][c] + l[i][c] + h[i][c];
-                assert!(
-                    (sum - full[i][c]).abs() <= 1e-9 * full[i][c].abs().max(1.0),
-                    "k={k} pixel {i}"
-                );
+                assert!((sum - full[i][c]).abs() <= 1e-9 * full[i][c].abs().max(1.0), "k={k} pixel {i}");
             }
         }
         // Same paths whatever k; only the f32 rounding of a path's per-buffer sums
         // differs (a path adds tens of contributions: well under 1e-5 relative).
-        for (i, (a, b)) in f
-            .sums(Buffer::Full)
-            .iter()
-            .zip(films[0].1.sums(Buffer::Full))
-            .enumerate()
-        {
+        for (i, (a, b)) in f.sums(Buffer::Full).iter().zip(films[0].1.sums(Buffer::Full)).enumerate() {
             for c in 0..3 {
-                assert!(
-                    (a[c] - b[c]).abs() <= 1e-5 * b[c].abs().max(1e-3),
-                    "k={k}: full depends on k at pixel {i}"
-                );
+                assert!((a[c] - b[c]).abs() <= 1e-5 * b[c].abs().max(1e-3), "k={k}: full depends on k at pixel {i}");
             }
         }
         if *k == 1 {
@@ -237,47 +170,19 @@ fn buffers_split_by_order() {
 #[test]
 fn deterministic_across_thread_counts() {
     let sun = Sun::new(Vec3::new(0.0, -1.0, 0.3), Vec3::ONE, 0.02).unwrap();
-    let scene = Arc::new(cumulus_scene(
-        32,
-        25.0,
-        0.99,
-        PhaseFunction::HenyeyGreenstein { g: 0.7 },
-        Some(sun),
-        Vec3::ZERO,
-        40,
-    ));
-    let settings = RenderSettings {
-        seed: 1234,
-        k: 2,
-        ..Default::default()
-    };
+    let scene =
+        Arc::new(cumulus_scene(32, 25.0, 0.99, PhaseFunction::HenyeyGreenstein { g: 0.7 }, Some(sun), Vec3::ZERO, 40));
+    let settings = RenderSettings { seed: 1234, k: 2, ..Default::default() };
     let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         pool.install(|| render(&scene, settings, None, 3))
     };
     let (a, b) = (run(1), run(2));
     for buf in Buffer::ALL {
-        assert!(
-            a.sums(buf) == b.sums(buf),
-            "{buf:?} differs between 1 and 2 threads"
-        );
+        assert!(a.sums(buf) == b.sums(buf), "{buf:?} differs between 1 and 2 threads");
     }
-    let c = render(
-        &scene,
-        RenderSettings {
-            seed: 1235,
-            ..settings
-        },
-        None,
-        3,
-    );
-    assert!(
-        a.sums(Buffer::Full) != c.sums(Buffer::Full),
-        "the seed matters"
-    );
+    let c = render(&scene, RenderSettings { seed: 1235, ..settings }, None, 3);
+    assert!(a.sums(Buffer::Full) != c.sums(Buffer::Full), "the seed matters");
 }
 
 /// A "predictor" that path traces L_i itself: prediction mode with it must agree with
@@ -296,52 +201,26 @@ impl InScatterPredictor for PathTracedPredictor {
             .chain(omega.to_array().iter())
             .fold(0u64, |a, v| engine::rng::mix64(a ^ v.to_bits() as u64));
         let mut rng = Rng::new(h, 0, 0);
-        self.integrator
-            .in_scattered_radiance(&self.scene, x, omega, &mut rng)
-            .x
+        self.integrator.in_scattered_radiance(&self.scene, x, omega, &mut rng).x
     }
 }
 
 #[test]
 fn prediction_mode_is_unbiased_with_an_exact_predictor() {
     let sun = Sun::new(Vec3::new(0.0, -1.0, 0.0), Vec3::new(2.0, 2.0, 2.0), 0.0).unwrap();
-    let scene = Arc::new(cumulus_scene(
-        32,
-        10.0,
-        0.9,
-        PhaseFunction::HenyeyGreenstein { g: 0.6 },
-        Some(sun),
-        Vec3::ZERO,
-        16,
-    ));
+    let scene =
+        Arc::new(cumulus_scene(32, 10.0, 0.9, PhaseFunction::HenyeyGreenstein { g: 0.6 }, Some(sun), Vec3::ZERO, 16));
     // The predictor answers for a unit sun.
-    let unit_scene = Scene {
-        sun: Some(Sun::new(sun.direction(), Vec3::ONE, 0.0).unwrap()),
-        ..(*scene).clone()
-    };
+    let unit_scene = Scene { sun: Some(Sun::new(sun.direction(), Vec3::ONE, 0.0).unwrap()), ..(*scene).clone() };
     let predictor: Arc<dyn InScatterPredictor> = Arc::new(PathTracedPredictor {
         integrator: Integrator::new(RenderSettings::default(), None).unwrap(),
         scene: unit_scene,
     });
     let k = 2;
-    let reference = render(
-        &scene,
-        RenderSettings {
-            seed: 1,
-            k,
-            ..Default::default()
-        },
-        None,
-        256,
-    );
+    let reference = render(&scene, RenderSettings { seed: 1, k, ..Default::default() }, None, 256);
     let predicted = render(
         &scene,
-        RenderSettings {
-            seed: 2,
-            k,
-            mode: Mode::Predict { p: 0.5 },
-            ..Default::default()
-        },
+        RenderSettings { seed: 2, k, mode: Mode::Predict { p: 0.5 }, ..Default::default() },
         Some(predictor),
         256,
     );
@@ -350,10 +229,7 @@ fn prediction_mode_is_unbiased_with_an_exact_predictor() {
         let (mr, vr) = image_mean(&reference, buf);
         let (mp, vp) = image_mean(&predicted, buf);
         let se = (vr + vp).sqrt();
-        assert!(
-            (mr - mp).abs() < z * se,
-            "{buf:?}: reference {mr} vs predicted {mp} (se {se})"
-        );
+        assert!((mr - mp).abs() < z * se, "{buf:?}: reference {mr} vs predicted {mp} (se {se})");
         assert!(mr > 0.0);
     }
 }
@@ -363,8 +239,5 @@ fn image_mean(f: &Film, buf: Buffer) -> (f64, f64) {
     let m = f.mean(buf);
     let v = f.variance_of_mean(buf);
     let n = m.len() as f64;
-    (
-        m.iter().map(|p| p[1] as f64).sum::<f64>() / n,
-        v.iter().map(|p| p[1] as f64).sum::<f64>() / (n * n),
-    )
+    (m.iter().map(|p| p[1] as f64).sum::<f64>() / n, v.iter().map(|p| p[1] as f64).sum::<f64>() / (n * n))
 }

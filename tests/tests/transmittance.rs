@@ -37,8 +37,7 @@ fn cases() -> Vec<Case> {
             // each face), each costing at most h^2/8 times the slope jump rho / vs.
             let vs = (h / ny as f32) as f64;
             let step = vs / 8.0 / a.cos() as f64;
-            let tol =
-                4.0 * step * step / 8.0 * (rho as f64 / vs) * (1.0 / a.cos() as f64) + 1e-5 * tau;
+            let tol = 4.0 * step * step / 8.0 * (rho as f64 / vs) * (1.0 / a.cos() as f64) + 1e-5 * tau;
             out.push(Case {
                 name: "slab",
                 medium: Medium::new(slab.clone(), rho, 1.0, PhaseFunction::Isotropic).unwrap(),
@@ -65,20 +64,12 @@ fn cases() -> Vec<Case> {
         let tau = rho as f64 * integral_dy / d.y as f64;
         // Tight (default) and loose (one cell for the whole grid) majorants: the loose
         // one makes ratio tracking multiply many factors below 1 and play roulette.
-        for (name, cells) in [
-            ("ramp", engine::medium::MajorantGrid::DEFAULT_CELL_VOXELS),
-            ("ramp, loose majorant", 1024),
-        ] {
+        for (name, cells) in
+            [("ramp", engine::medium::MajorantGrid::DEFAULT_CELL_VOXELS), ("ramp, loose majorant", 1024)]
+        {
             out.push(Case {
                 name,
-                medium: Medium::with_majorant_cells(
-                    ramp.clone(),
-                    rho,
-                    1.0,
-                    PhaseFunction::Isotropic,
-                    cells,
-                )
-                .unwrap(),
+                medium: Medium::with_majorant_cells(ramp.clone(), rho, 1.0, PhaseFunction::Isotropic, cells).unwrap(),
                 o,
                 d,
                 t_max,
@@ -122,11 +113,7 @@ fn tracking_estimators_match_closed_form() {
         );
         // Ratio tracking never has more variance than delta tracking (equal where the
         // majorant is tight and the medium homogeneous: both are then binary).
-        assert!(
-            ratio.variance() <= delta.variance() * 1.02,
-            "{} case {i}",
-            c.name
-        );
+        assert!(ratio.variance() <= delta.variance() * 1.02, "{} case {i}", c.name);
     }
 }
 
@@ -134,9 +121,7 @@ fn tracking_estimators_match_closed_form() {
 fn ray_marching_matches_closed_form() {
     for (i, c) in cases().iter().enumerate() {
         let vs = c.medium.grid().voxel_size().y;
-        let tau = c
-            .medium
-            .optical_depth(c.o, c.d, c.t_max, vs / 8.0, f32::INFINITY) as f64;
+        let tau = c.medium.optical_depth(c.o, c.d, c.t_max, vs / 8.0, f32::INFINITY) as f64;
         assert!(
             (tau - c.tau).abs() <= c.march_tol,
             "{} case {i}: marched {tau} vs exact {} (tol {})",
