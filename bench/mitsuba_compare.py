@@ -205,14 +205,19 @@ def check_grid_placement(mi, dr, d, grid, bmin, bmax, n=200_000):
     return float(np.max(np.abs(got - grid[z, y, x])))
 
 
-def render(mi, dr, scene_obj, spp, seed, sun_irradiance):
-    """Render; return (image float32 (h, w, 3), wall seconds)."""
+def render(mi, dr, scene_obj, spp, seed, sun_irradiance, stats=None):
+    """Render; return (image float32 (h, w, 3), wall seconds).
+
+    If `stats` is a dict, stats["cpu_seconds"] receives the process CPU time
+    (all threads) spent in the render, to detect competing load."""
     dr.sync_thread()
-    t0 = time.perf_counter()
+    c0, t0 = time.process_time(), time.perf_counter()
     img = mi.render(scene_obj, spp=spp, seed=seed)
     dr.eval(img)
     dr.sync_thread()
     seconds = time.perf_counter() - t0
+    if stats is not None:
+        stats["cpu_seconds"] = time.process_time() - c0
     a = np.array(img, dtype=np.float32)
     if a.ndim == 2:
         a = a[:, :, None]
@@ -334,13 +339,25 @@ def main(argv=None):
     # Warm-up: compiles (or fetches from Dr.Jit's kernel cache) the kernels;
     # the sample count is not baked into them, so the timed render reuses them.
     _, warm_s = render(mi, dr, scene_obj, warmup_spp, args.seed + 1000003, irr)
-    img, seconds = render(mi, dr, scene_obj, spp, args.seed, irr)
+    stats = {}
+    img, seconds = render(mi, dr, scene_obj, spp, args.seed, irr, stats)
+    cpu_util = stats["cpu_seconds"] / seconds / args.threads
     print(f"scene load {load_s:.2f} s, warm-up ({warmup_spp} spp) {warm_s:.2f} s, "
-          f"render ({spp} spp) {seconds:.2f} s", file=sys.stderr)
+          f"render ({spp} spp) {seconds:.2f} s, CPU utilisation "
+          f"{100 * cpu_util:.0f}% of {args.threads} threads", file=sys.stderr)
+    if cpu_util < 0.85:
+        print("WARNING: the render threads got well under their share of CPU; "
+              "is something else running? The timing is not trustworthy.",
+              file=sys.stderr)
 
     np.save(os.path.join(d, "mitsuba_full.npy"), img)
+    # Gotcha (mitsuba 3.9.1): writing an EXR deadlocks in OpenEXR's thread
+    # pool when Dr.Jit has a single worker thread; use two while writing.
+    if dr.thread_count() < 2:
+        dr.set_thread_count(2)
     mi.Bitmap(img, pixel_format=mi.Bitmap.PixelFormat.RGB).write(
         os.path.join(d, "mitsuba.exr"))
+    dr.set_thread_count(args.threads)
 
     sps = spp * w * h / seconds
     nim = scene.get("nimbus", {})
@@ -354,6 +371,7 @@ def main(argv=None):
         "mitsuba_warmup_seconds": warm_s,
         "mitsuba_seconds": seconds,
         "mitsuba_samples_per_second": sps,
+        "mitsuba_cpu_utilisation": cpu_util,
         "nimbus_samples_per_second": nimbus_sps,
         "speed_ratio": (nimbus_sps / sps) if nimbus_sps else None,
     }

@@ -21,6 +21,10 @@ pub struct Cli {
 pub enum Command {
     /// Render a scene file to a multi-layer EXR (and optionally a PNG).
     Render(RenderArgs),
+    /// Build a procedural cloud and write it out (.vol Mitsuba volume, or .raw + .json).
+    Model(ModelArgs),
+    /// Render every modeler preset into one contact-sheet PNG.
+    Sheet(SheetArgs),
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -64,11 +68,56 @@ pub struct RenderArgs {
     pub quiet: bool,
 }
 
+#[derive(Args, Debug)]
+pub struct ModelArgs {
+    /// A preset name (scene-a, scene-b, scene-c, set-01 .. set-12) or a TOML file of
+    /// modeler parameters.
+    pub source: String,
+    /// Voxels per axis.
+    #[arg(long, default_value_t = 128)]
+    pub res: u32,
+    /// Override the seed.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Output: NAME.vol (Mitsuba grid volume) or NAME.raw (+ NAME.json beside it).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Args, Debug)]
+pub struct SheetArgs {
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Samples per pixel per cloud.
+    #[arg(long, default_value_t = 64)]
+    pub spp: u32,
+    /// Edge of each tile in pixels.
+    #[arg(long, default_value_t = 192)]
+    pub tile: u32,
+    /// Grid resolution of each cloud.
+    #[arg(long, default_value_t = 96)]
+    pub res: u32,
+    /// Density scale.
+    #[arg(long, default_value_t = 20.0)]
+    pub rho: f32,
+}
+
 #[derive(Subcommand, Debug)]
 pub enum BenchCommand {
     /// Samples per second on the fixed benchmark scene (128^3 multi-lobe cloud,
     /// rho 40, albedo 1, g 0.85, toplit, 256x256, full transport).
     Render(BenchRenderArgs),
+    /// Time to rebuild clouds from presets (128^3 and 256^3).
+    Model(BenchModelArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct BenchModelArgs {
+    /// Repetitions per measurement (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    pub reps: u32,
+    #[arg(long)]
+    pub threads: Option<usize>,
 }
 
 #[derive(Args, Debug)]
@@ -103,11 +152,14 @@ pub fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Some(Command::Render(args)) => render(args),
+        Some(Command::Model(args)) => crate::model_cmd::model(args),
+        Some(Command::Sheet(args)) => crate::model_cmd::sheet(args),
+        Some(Command::Bench { which: BenchCommand::Model(args) }) => crate::model_cmd::bench_model(args),
         Some(Command::Bench { which: BenchCommand::Render(args) }) => bench_render(args),
     }
 }
 
-fn init_threads(threads: Option<usize>) -> Result<usize> {
+pub(crate) fn init_threads(threads: Option<usize>) -> Result<usize> {
     if let Some(n) = threads {
         if n == 0 {
             bail!("--threads must be at least 1");
@@ -130,7 +182,7 @@ fn stop_on_ctrl_c(control: &Arc<RenderControl>) {
     });
 }
 
-fn progress_bar(len: u64, quiet: bool) -> ProgressBar {
+pub(crate) fn progress_bar(len: u64, quiet: bool) -> ProgressBar {
     if quiet {
         return ProgressBar::hidden();
     }

@@ -3,6 +3,7 @@
 
 pub mod cli;
 pub mod cloud;
+pub mod model_cmd;
 pub mod output;
 pub mod progressive;
 pub mod scene;

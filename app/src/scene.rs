@@ -5,8 +5,8 @@
 //! seed = 1                 # random streams derive from (seed, pass, pixel)
 //! k = 2                    # first scattering order of the high-order buffer
 //! [grid]
-//! builtin = "cumulus"      # cumulus | sphere
-//! resolution = 128
+//! preset = "scene-a"       # scene-a|b|c, set-01 .. set-12; or builtin = "cumulus"
+//! resolution = 128         # (or a [grid.params] table of modeler parameters)
 //! [medium]
 //! rho = 40.0               # density scale: sigma_t = rho * density (1 / world unit)
 //! albedo = 1.0
@@ -95,7 +95,11 @@ fn default_k() -> u32 {
 pub struct GridDesc {
     /// A built-in analytic cloud: "cumulus" or "sphere".
     pub builtin: Option<String>,
-    /// Voxels per axis for built-in clouds, 2 ..= 1024. Default 128.
+    /// A modeler preset: scene-a, scene-b, scene-c, set-01 .. set-12.
+    pub preset: Option<String>,
+    /// Modeler parameters given inline (see `modeler::CloudParams`).
+    pub params: Option<modeler::CloudParams>,
+    /// Voxels per axis for generated clouds, 2 ..= 1024. Default 128.
     #[serde(default = "default_resolution")]
     pub resolution: u32,
 }
@@ -269,19 +273,31 @@ impl SceneFile {
                 return Err(range_err("max_order", m, ">= 1"));
             }
         }
-        match &self.grid.builtin {
-            None => {
-                return Err(SceneError::Invalid(
-                    "grid: no source given; set grid.builtin to one of: cumulus, sphere".into(),
-                ));
-            }
-            Some(name) if Builtin::from_name(name).is_none() => {
+        let g = &self.grid;
+        let sources = [g.builtin.is_some(), g.preset.is_some(), g.params.is_some()].iter().filter(|x| **x).count();
+        if sources != 1 {
+            return Err(SceneError::Invalid(format!(
+                "grid: give exactly one source (grid.builtin, grid.preset or grid.params), found {sources}"
+            )));
+        }
+        if let Some(name) = &g.builtin {
+            if Builtin::from_name(name).is_none() {
                 return Err(SceneError::Invalid(format!(
                     "grid.builtin = \"{name}\" is not a built-in cloud; choose one of: {}",
                     Builtin::NAMES.join(", ")
                 )));
             }
-            _ => {}
+        }
+        if let Some(name) = &g.preset {
+            if modeler::preset(name).is_none() {
+                return Err(SceneError::Invalid(format!(
+                    "grid.preset = \"{name}\" is not a preset; choose one of: {}",
+                    modeler::PRESET_NAMES.join(", ")
+                )));
+            }
+        }
+        if let Some(p) = &g.params {
+            p.validate().map_err(|e| SceneError::Invalid(format!("grid.params.{e}")))?;
         }
         if !(2..=1024).contains(&self.grid.resolution) {
             return Err(range_err("grid.resolution", self.grid.resolution, "2 ..= 1024"));
@@ -363,8 +379,16 @@ impl SceneFile {
 
     pub fn build_grid(&self) -> Result<DensityGrid, SceneError> {
         self.validate()?;
-        let b = Builtin::from_name(self.grid.builtin.as_deref().unwrap_or_default()).expect("validated");
-        Ok(b.grid(self.grid.resolution))
+        let g = &self.grid;
+        if let Some(name) = &g.builtin {
+            return Ok(Builtin::from_name(name).expect("validated").grid(g.resolution));
+        }
+        let params = match (&g.preset, &g.params) {
+            (Some(name), _) => modeler::preset(name).expect("validated"),
+            (None, Some(p)) => p.clone(),
+            (None, None) => unreachable!("validated"),
+        };
+        modeler::build_grid(&params, g.resolution).map_err(|e| SceneError::Invalid(format!("grid: {e}")))
     }
 
     pub fn build_sun(&self) -> Result<Sun, SceneError> {
@@ -470,6 +494,14 @@ mod tests {
         assert_eq!(s.validate().unwrap_err().to_string(), "k = 0 is out of range: 1 ..= 64");
         let s = SceneFile::from_toml_str("[grid]\nbuiltin = \"cirrus\"\n", "t").unwrap();
         assert!(s.validate().unwrap_err().to_string().contains("cirrus"));
+        let s = SceneFile::from_toml_str("[grid]\npreset = \"scene-z\"\n", "t").unwrap();
+        assert!(s.validate().unwrap_err().to_string().contains("scene-z"));
+        let s = SceneFile::from_toml_str("[grid]\npreset = \"scene-a\"\nbuiltin = \"sphere\"\n", "t").unwrap();
+        assert!(s.validate().unwrap_err().to_string().contains("exactly one source"));
+        let s = SceneFile::from_toml_str("[grid.params]\noctaves = 20\n", "t").unwrap();
+        assert_eq!(s.validate().unwrap_err().to_string(), "grid.params.octaves = 20 is out of range: 1 ..= 8");
+        let e = SceneFile::from_toml_str("[grid.params]\noctavez = 2\n", "t").unwrap_err();
+        assert!(e.to_string().contains("octavez"));
     }
 
     #[test]

@@ -1,0 +1,126 @@
+//! `nimbus model`, `nimbus sheet` and `nimbus bench model`.
+
+use crate::cli::{BenchModelArgs, ModelArgs, SheetArgs, init_threads, progress_bar};
+use crate::output::{self, ToneMap};
+use crate::progressive::render_spp;
+use crate::scene::SceneFile;
+use anyhow::{Context, Result, bail};
+use engine::{Buffer, DensityGrid, RenderControl};
+use modeler::CloudParams;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Modeler parameters from a preset name or a TOML file.
+pub fn load_params(source: &str) -> Result<CloudParams> {
+    if let Some(p) = modeler::preset(source) {
+        return Ok(p);
+    }
+    let path = Path::new(source);
+    if !path.exists() {
+        bail!("'{source}' is neither a preset ({}) nor an existing parameter file", modeler::PRESET_NAMES.join(", "));
+    }
+    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {source}"))?;
+    let params: CloudParams =
+        toml::from_str(&text).map_err(|e| anyhow::anyhow!("{source}: {}", e.to_string().trim()))?;
+    params.validate().with_context(|| format!("{source}"))?;
+    Ok(params)
+}
+
+pub fn model(args: ModelArgs) -> Result<()> {
+    let mut params = load_params(&args.source)?;
+    if let Some(seed) = args.seed {
+        params.seed = seed;
+    }
+    let start = Instant::now();
+    let grid = modeler::build_grid(&params, args.res)?;
+    let build_secs = start.elapsed().as_secs_f64();
+    write_grid(&grid, &args.out)?;
+    println!(
+        "{}",
+        serde_json::json!({"source": args.source, "resolution": args.res, "build_seconds": build_secs, "out": args.out})
+    );
+    Ok(())
+}
+
+/// Writes a grid by extension: .vol (Mitsuba), .raw (+ .json sidecar).
+pub fn write_grid(grid: &DensityGrid, out: &Path) -> Result<()> {
+    match out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
+        Some("vol") => output::write_bytes_atomically(out, &output::mitsuba_vol_bytes(grid)),
+        Some("raw") => {
+            let data: Vec<u8> = grid.data().iter().flat_map(|v| v.to_le_bytes()).collect();
+            output::write_bytes_atomically(out, &data)?;
+            let b = grid.bounds();
+            let json = serde_json::json!({
+                "format": "float32 little-endian, x fastest, then y, then z",
+                "dims": grid.dims().to_array(),
+                "bounds_min": b.min.to_array(),
+                "bounds_max": b.max.to_array(),
+                "voxel_size": grid.voxel_size().to_array(),
+                "cell_centred": true,
+                "max_value": grid.max_value(),
+            });
+            output::write_bytes_atomically(&out.with_extension("json"), serde_json::to_string_pretty(&json)?.as_bytes())
+        }
+        Some("vdb") => bail!("{}: VDB export is not implemented yet (issue 4); use .vol or .raw", out.display()),
+        _ => bail!("{}: unknown cloud format; use .vol or .raw", out.display()),
+    }
+}
+
+pub fn sheet(args: SheetArgs) -> Result<()> {
+    init_threads(None)?;
+    let names = modeler::PRESET_NAMES;
+    let cols = 5u32;
+    let rows = (names.len() as u32).div_ceil(cols);
+    let (tw, th) = (args.tile, args.tile);
+    let mut sheet = image::RgbaImage::new(cols * tw, rows * th);
+    let control = RenderControl::new();
+    let bar = progress_bar(names.len() as u64, false);
+    for (i, name) in names.iter().enumerate() {
+        let mut file = SceneFile::from_toml_str(&format!("[grid]\npreset = \"{name}\"\n"), "sheet")?;
+        file.grid.resolution = args.res;
+        file.medium.rho = args.rho;
+        file.sun.direction = [0.4, -1.0, -0.3];
+        file.camera.preset = Some("toplit".into());
+        file.camera.fov_y_deg = 24.0;
+        (file.camera.width, file.camera.height) = (tw, th);
+        file.seed = i as u64;
+        let scene = Arc::new(file.build_scene(None)?);
+        let out = render_spp(scene, file.integrator()?, args.spp, &control, |_| {})?;
+        let rgba = ToneMap::Filmic.to_rgba8(&out.film.mean(Buffer::Full), 0.5);
+        let tile = image::RgbaImage::from_raw(tw, th, rgba).context("tile size")?;
+        image::imageops::overlay(&mut sheet, &tile, ((i as u32 % cols) * tw) as i64, ((i as u32 / cols) * th) as i64);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    output::write_atomically(&args.out, |tmp| {
+        sheet.save_with_format(tmp, image::ImageFormat::Png).map_err(Into::into)
+    })?;
+    println!("wrote {} ({} clouds: {})", args.out.display(), names.len(), names.join(", "));
+    Ok(())
+}
+
+pub fn bench_model(args: BenchModelArgs) -> Result<()> {
+    let threads = init_threads(args.threads)?;
+    println!("bench model: median of {} builds, {threads} threads", args.reps);
+    let mut results = Vec::new();
+    for name in ["scene-a", "scene-b", "scene-c"] {
+        let params = modeler::preset(name).expect("preset");
+        for res in [64u32, 128, 256] {
+            let mut times: Vec<f64> = (0..args.reps.max(1))
+                .map(|_| {
+                    let t = Instant::now();
+                    let g = modeler::build_grid(&params, res).expect("valid preset");
+                    std::hint::black_box(g.max_value());
+                    t.elapsed().as_secs_f64()
+                })
+                .collect();
+            times.sort_by(f64::total_cmp);
+            let median = times[times.len() / 2];
+            println!("  {name} {res:>3}^3: {:>8.1} ms", median * 1e3);
+            results.push(serde_json::json!({"preset": name, "resolution": res, "median_seconds": median}));
+        }
+    }
+    println!("{}", serde_json::json!({"bench": "model", "threads": threads, "results": results}));
+    Ok(())
+}
