@@ -241,3 +241,38 @@ fn image_mean(f: &Film, buf: Buffer) -> (f64, f64) {
     let n = m.len() as f64;
     (m.iter().map(|p| p[1] as f64).sum::<f64>() / n, v.iter().map(|p| p[1] as f64).sum::<f64>() / (n * n))
 }
+
+/// A pass abandoned by a generation bump or a stop request adds nothing to the film,
+/// and the renderer carries on from where it was afterwards.
+#[test]
+fn cancelled_passes_leave_the_film_untouched() {
+    let sun = Sun::new(Vec3::NEG_Y, Vec3::ONE, 0.0).unwrap();
+    let scene =
+        Arc::new(cumulus_scene(32, 20.0, 1.0, PhaseFunction::HenyeyGreenstein { g: 0.85 }, Some(sun), Vec3::ZERO, 64));
+    let mut r = Renderer::new(scene, Integrator::new(RenderSettings::default(), None).unwrap()).unwrap();
+    let control = Arc::new(RenderControl::new());
+    assert_eq!(r.render_pass(&control, control.generation()), engine::PassOutcome::Completed);
+    let before = r.snapshot();
+    // A stale generation: the pass must not run.
+    let stale = control.generation();
+    control.bump();
+    assert_eq!(r.render_pass(&control, stale), engine::PassOutcome::Cancelled);
+    // A stop request arriving while a pass runs on another thread.
+    let c2 = control.clone();
+    let stopper = std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_millis(1));
+        c2.request_stop();
+    });
+    let outcome = r.render_pass(&control, control.generation());
+    stopper.join().unwrap();
+    let after = r.snapshot();
+    match outcome {
+        engine::PassOutcome::Cancelled => {
+            assert!(after.sums(Buffer::Full) == before.sums(Buffer::Full) && after.spp() == 1)
+        }
+        engine::PassOutcome::Completed => assert_eq!(after.spp(), 2), // finished before the stop arrived
+    }
+    control.clear_stop();
+    assert_eq!(r.render_pass(&control, control.generation()), engine::PassOutcome::Completed);
+    assert_eq!(r.spp(), after.spp() + 1);
+}
