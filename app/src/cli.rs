@@ -23,6 +23,8 @@ pub enum Command {
     Render(RenderArgs),
     /// Build a procedural cloud and write it out (.vol Mitsuba volume, or .raw + .json).
     Model(ModelArgs),
+    /// Write a scene's cloud, sun and camera as a Mitsuba 3 scene (cloud.vol + scene.xml).
+    Mitsuba(MitsubaArgs),
     /// Render every modeler preset into one contact-sheet PNG.
     Sheet(SheetArgs),
     /// Benchmarks.
@@ -82,6 +84,18 @@ pub struct ModelArgs {
     /// Output: NAME.vol (Mitsuba grid volume) or NAME.raw (+ NAME.json beside it).
     #[arg(long)]
     pub out: PathBuf,
+}
+
+#[derive(Args, Debug)]
+pub struct MitsubaArgs {
+    /// Scene file (TOML).
+    pub scene: PathBuf,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Samples per pixel written into the XML.
+    #[arg(long, default_value_t = 256)]
+    pub spp: u32,
 }
 
 #[derive(Args, Debug)]
@@ -154,6 +168,13 @@ pub fn run(cli: Cli) -> Result<()> {
         Some(Command::Render(args)) => render(args),
         Some(Command::Model(args)) => crate::model_cmd::model(args),
         Some(Command::Sheet(args)) => crate::model_cmd::sheet(args),
+        Some(Command::Mitsuba(args)) => {
+            let file = SceneFile::load(&args.scene)?;
+            let scene = file.build_scene(None)?;
+            crate::mitsuba::export(&scene, args.spp, &args.out)?;
+            println!("wrote {}/cloud.vol and {}/scene.xml", args.out.display(), args.out.display());
+            Ok(())
+        }
         Some(Command::Bench { which: BenchCommand::Model(args) }) => crate::model_cmd::bench_model(args),
         Some(Command::Bench { which: BenchCommand::Render(args) }) => bench_render(args),
     }
@@ -241,6 +262,7 @@ fn render(args: RenderArgs) -> Result<()> {
         "height": film.height(),
         "threads": threads,
         "stopped_early": outcome.stopped,
+        "mean_full": film.mean(Buffer::Full).iter().map(|p| (p[0] + p[1] + p[2]) as f64 / 3.0).sum::<f64>() / film.pixel_count() as f64,
         "out": args.out,
     });
     println!("{summary}");

@@ -3,6 +3,7 @@
 
 pub mod cli;
 pub mod cloud;
+pub mod mitsuba;
 pub mod model_cmd;
 pub mod output;
 pub mod progressive;
