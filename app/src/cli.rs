@@ -21,7 +21,7 @@ pub struct Cli {
 pub enum Command {
     /// Render a scene file to a multi-layer EXR (and optionally a PNG).
     Render(RenderArgs),
-    /// Build a procedural cloud and write it out (.vol Mitsuba volume, or .raw + .json).
+    /// Build a procedural cloud and write it out (.vdb, .vol Mitsuba volume, or .raw + .json).
     Model(ModelArgs),
     /// Write a scene's cloud, sun and camera as a Mitsuba 3 scene (cloud.vol + scene.xml).
     Mitsuba(MitsubaArgs),
@@ -81,7 +81,7 @@ pub struct ModelArgs {
     /// Override the seed.
     #[arg(long)]
     pub seed: Option<u64>,
-    /// Output: NAME.vol (Mitsuba grid volume) or NAME.raw (+ NAME.json beside it).
+    /// Output: NAME.vdb (OpenVDB), NAME.vol (Mitsuba grid volume) or NAME.raw (+ NAME.json).
     #[arg(long)]
     pub out: PathBuf,
 }

@@ -43,7 +43,7 @@ pub fn model(args: ModelArgs) -> Result<()> {
     Ok(())
 }
 
-/// Writes a grid by extension: .vol (Mitsuba), .raw (+ .json sidecar).
+/// Writes a grid by extension: .vdb (OpenVDB), .vol (Mitsuba), .raw (+ .json sidecar).
 pub fn write_grid(grid: &DensityGrid, out: &Path) -> Result<()> {
     match out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
         Some("vol") => output::write_bytes_atomically(out, &output::mitsuba_vol_bytes(grid)),
@@ -62,8 +62,8 @@ pub fn write_grid(grid: &DensityGrid, out: &Path) -> Result<()> {
             });
             output::write_bytes_atomically(&out.with_extension("json"), serde_json::to_string_pretty(&json)?.as_bytes())
         }
-        Some("vdb") => bail!("{}: VDB export is not implemented yet (issue 4); use .vol or .raw", out.display()),
-        _ => bail!("{}: unknown cloud format; use .vol or .raw", out.display()),
+        Some("vdb") => output::write_bytes_atomically(out, &modeler::vdb::vdb_bytes(grid, "density")?),
+        _ => bail!("{}: unknown cloud format; use .vdb, .vol or .raw", out.display()),
     }
 }
 

@@ -74,6 +74,9 @@ pub struct SceneFile {
     #[serde(default)]
     pub max_order: Option<u32>,
     pub grid: GridDesc,
+    /// Directory relative paths in the scene resolve against (the scene file's).
+    #[serde(skip)]
+    pub base_dir: Option<std::path::PathBuf>,
     #[serde(default)]
     pub medium: MediumDesc,
     #[serde(default)]
@@ -99,6 +102,10 @@ pub struct GridDesc {
     pub preset: Option<String>,
     /// Modeler parameters given inline (see `modeler::CloudParams`).
     pub params: Option<modeler::CloudParams>,
+    /// An OpenVDB file (relative to the scene file).
+    pub file: Option<String>,
+    /// The float grid to read from `file` (default "density", else the first float grid).
+    pub grid_name: Option<String>,
     /// Voxels per axis for generated clouds, 2 ..= 1024. Default 128.
     #[serde(default = "default_resolution")]
     pub resolution: u32,
@@ -256,7 +263,9 @@ impl SceneFile {
     pub fn load(path: &Path) -> Result<Self, SceneError> {
         let text = std::fs::read_to_string(path)
             .map_err(|source| SceneError::Io { path: path.display().to_string(), source })?;
-        Self::from_toml_str(&text, &path.display().to_string())
+        let mut file = Self::from_toml_str(&text, &path.display().to_string())?;
+        file.base_dir = path.parent().map(|d| d.to_path_buf());
+        Ok(file)
     }
 
     pub fn to_toml(&self) -> String {
@@ -274,10 +283,13 @@ impl SceneFile {
             }
         }
         let g = &self.grid;
-        let sources = [g.builtin.is_some(), g.preset.is_some(), g.params.is_some()].iter().filter(|x| **x).count();
+        let sources = [g.builtin.is_some(), g.preset.is_some(), g.params.is_some(), g.file.is_some()]
+            .iter()
+            .filter(|x| **x)
+            .count();
         if sources != 1 {
             return Err(SceneError::Invalid(format!(
-                "grid: give exactly one source (grid.builtin, grid.preset or grid.params), found {sources}"
+                "grid: give exactly one source (grid.builtin, grid.preset, grid.params or grid.file), found {sources}"
             )));
         }
         if let Some(name) = &g.builtin {
@@ -382,6 +394,15 @@ impl SceneFile {
         let g = &self.grid;
         if let Some(name) = &g.builtin {
             return Ok(Builtin::from_name(name).expect("validated").grid(g.resolution));
+        }
+        if let Some(file) = &g.file {
+            let path = match &self.base_dir {
+                Some(dir) => dir.join(file),
+                None => std::path::PathBuf::from(file),
+            };
+            let imported = modeler::vdb::read_vdb(&path, g.grid_name.as_deref())
+                .map_err(|e| SceneError::Invalid(format!("grid.file: {e}")))?;
+            return Ok(imported.grid);
         }
         let params = match (&g.preset, &g.params) {
             (Some(name), _) => modeler::preset(name).expect("validated"),

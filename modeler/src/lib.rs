@@ -10,6 +10,7 @@
 
 pub mod params;
 pub mod presets;
+pub mod vdb;
 
 mod build;
 

@@ -107,3 +107,33 @@ fn bad_input_gives_clear_messages() {
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
+
+/// A scene can take its cloud from a VDB file next to it; `nimbus model` writes one.
+#[test]
+fn vdb_cloud_round_trip_through_the_cli() {
+    let dir = temp_dir("vdb");
+    let vdb = dir.join("cloud.vdb");
+    nimbus(&["model", "scene-a", "--res", "24", "--out", s(&vdb)]).unwrap();
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, "[grid]\nfile = \"cloud.vdb\"\n[medium]\nrho = 10.0\n[camera]\nwidth = 16\nheight = 16\n")
+        .unwrap();
+    let exr = dir.join("out.exr");
+    nimbus(&["render", s(&scene), "--spp", "2", "--out", s(&exr), "--quiet"]).unwrap();
+    let (_, _, layers) = read_exr(&exr).unwrap();
+    assert!(layers.iter().find(|l| l.name == "full").unwrap().rgb.iter().any(|p| p[0] > 0.0));
+
+    // A VDB the reader cannot handle is refused with the file and the reason.
+    let half = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/vdb-samples/half_float.vdb");
+    std::fs::write(&scene, format!("[grid]\nfile = \"{}\"\n", half.display())).unwrap();
+    let e = format!("{:#}", nimbus(&["render", s(&scene), "--out", s(&exr), "--quiet"]).unwrap_err());
+    assert!(e.contains("half_float.vdb") && e.contains("half floats"), "{e}");
+    // Other formats by extension; unknown ones are named.
+    nimbus(&["model", "set-03", "--res", "16", "--out", s(&dir.join("c.vol"))]).unwrap();
+    nimbus(&["model", "set-03", "--res", "16", "--out", s(&dir.join("c.raw"))]).unwrap();
+    assert!(dir.join("c.json").exists());
+    let e = format!("{:#}", nimbus(&["model", "set-03", "--out", s(&dir.join("c.obj"))]).unwrap_err());
+    assert!(e.contains("c.obj") && e.contains(".vdb"), "{e}");
+    let e = format!("{:#}", nimbus(&["model", "scene-q", "--out", s(&vdb)]).unwrap_err());
+    assert!(e.contains("scene-q") && e.contains("scene-a"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

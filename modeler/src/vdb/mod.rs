@@ -1,0 +1,7 @@
+//! OpenVDB files in and out.
+
+mod read;
+mod write;
+
+pub use read::{MAX_DENSE_VOXELS, VdbImport, VdbReadError, read_vdb, read_vdb_bytes};
+pub use write::{VdbWriteError, vdb_bytes};
