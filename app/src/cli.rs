@@ -159,11 +159,13 @@ pub struct BenchRenderArgs {
 /// Runs the CLI; returns the process exit code.
 pub fn run(cli: Cli) -> Result<()> {
     match cli.command {
+        #[cfg(feature = "gui")]
+        None => crate::gui::run(),
+        #[cfg(not(feature = "gui"))]
         None => {
             use clap::CommandFactory;
             Cli::command().print_help()?;
-            println!("\n\nThe interactive window is not built yet (issue 8); use the subcommands above.");
-            Ok(())
+            anyhow::bail!("this nimbus was built without the window (feature \"gui\"); use the subcommands")
         }
         Some(Command::Render(args)) => render(args),
         Some(Command::Model(args)) => crate::model_cmd::model(args),

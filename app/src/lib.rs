@@ -3,6 +3,8 @@
 
 pub mod cli;
 pub mod cloud;
+#[cfg(feature = "gui")]
+pub mod gui;
 pub mod mitsuba;
 pub mod model_cmd;
 pub mod output;

@@ -1,0 +1,196 @@
+//! The render worker: owns the renderer on its own thread, takes scene descriptions
+//! from the UI over a channel, and publishes finished passes. Nothing renders on the
+//! UI thread. Every change bumps the shared generation counter, so the pass under way
+//! stops at its next tile, and the worker starts over with the new snapshot.
+
+use crate::scene::SceneFile;
+use engine::{Buffer, DensityGrid, Film, PassOutcome, RenderControl, Renderer};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// What the UI asks for.
+pub enum Command {
+    /// Render this scene; `coarse` builds the cloud at a low resolution (a slider is
+    /// being dragged).
+    Render {
+        scene: Box<SceneFile>,
+        coarse: bool,
+        generation: u64,
+    },
+    Quit,
+}
+
+/// The latest finished pass, for the UI.
+#[derive(Clone)]
+pub struct Published {
+    pub generation: u64,
+    pub film: Arc<Film>,
+    pub render_secs: f64,
+    /// Camera samples per second over this render.
+    pub samples_per_sec: f64,
+    /// Relative standard error of the full image (mean over lit pixels).
+    pub noise: f64,
+    pub coarse: bool,
+}
+
+/// Shared between the worker and the UI.
+#[derive(Default)]
+pub struct Mailbox {
+    pub latest: Option<Published>,
+    pub error: Option<(u64, String)>,
+    /// Set while a cloud is being rebuilt.
+    pub building: bool,
+}
+
+/// Resolution used for the cloud while a slider moves.
+pub const COARSE_RESOLUTION: u32 = 48;
+
+pub fn spawn(
+    rx: Receiver<Command>,
+    control: Arc<RenderControl>,
+    mailbox: Arc<Mutex<Mailbox>>,
+    wake: impl Fn() + Send + 'static,
+) -> std::thread::JoinHandle<()> {
+    std::thread::Builder::new()
+        .name("nimbus-render-worker".into())
+        .spawn(move || run(rx, control, mailbox, wake))
+        .expect("cannot start the render worker")
+}
+
+fn relative_noise(film: &Film) -> f64 {
+    let mean = film.mean(Buffer::Full);
+    let var = film.variance_of_mean(Buffer::Full);
+    let (mut num, mut den) = (0.0f64, 0.0f64);
+    for (m, v) in mean.iter().zip(&var) {
+        let l = (m[0] + m[1] + m[2]) as f64 / 3.0;
+        if l > 0.0 {
+            num += (v[0] + v[1] + v[2]) as f64 / 3.0;
+            den += l * l;
+        }
+    }
+    if den > 0.0 { (num / den).sqrt() } else { 0.0 }
+}
+
+fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Mailbox>>, wake: impl Fn()) {
+    // The last cloud built, keyed by its description, so camera or light changes do
+    // not rebuild it.
+    let mut cache: Option<(String, Arc<DensityGrid>)> = None;
+    let mut job: Option<(Renderer, u64, Instant, bool)> = None;
+    loop {
+        // Take the newest command; block only when idle.
+        let mut next = None;
+        loop {
+            let cmd = if job.is_some() || next.is_some() {
+                match rx.try_recv() {
+                    Ok(c) => c,
+                    Err(_) => break,
+                }
+            } else {
+                match rx.recv_timeout(Duration::from_millis(200)) {
+                    Ok(c) => c,
+                    Err(RecvTimeoutError::Timeout) => continue,
+                    Err(RecvTimeoutError::Disconnected) => return,
+                }
+            };
+            match cmd {
+                Command::Quit => return,
+                c @ Command::Render { .. } => next = Some(c),
+            }
+        }
+        if let Some(Command::Render { mut scene, coarse, generation }) = next {
+            job = None;
+            if coarse {
+                scene.grid.resolution = scene.grid.resolution.min(COARSE_RESOLUTION);
+            }
+            let key = format!(
+                "{:?}|{}",
+                scene.grid,
+                scene.base_dir.as_ref().map(|d| d.display().to_string()).unwrap_or_default()
+            );
+            let grid = match &cache {
+                Some((k, g)) if *k == key => Ok(g.clone()),
+                _ => {
+                    mailbox.lock().unwrap().building = true;
+                    wake();
+                    let g = scene.build_grid().map(Arc::new);
+                    mailbox.lock().unwrap().building = false;
+                    if let Ok(g) = &g {
+                        cache = Some((key, g.clone()));
+                    }
+                    g
+                }
+            };
+            let built = grid.map_err(|e| e.to_string()).and_then(|g| {
+                let s = scene.build_scene(Some(g)).map_err(|e| e.to_string())?;
+                let integ = scene.integrator().map_err(|e| e.to_string())?;
+                Renderer::new(Arc::new(s), integ).map_err(|e| e.to_string())
+            });
+            match built {
+                Ok(r) => {
+                    mailbox.lock().unwrap().error = None;
+                    job = Some((r, generation, Instant::now(), coarse));
+                }
+                Err(e) => {
+                    mailbox.lock().unwrap().error = Some((generation, e));
+                    wake();
+                }
+            }
+            continue;
+        }
+        let Some((renderer, generation, start, coarse)) = &mut job else { continue };
+        if control.generation() != *generation {
+            job = None; // a newer command is on its way
+            continue;
+        }
+        if renderer.render_pass(&control, *generation) == PassOutcome::Completed {
+            let film = Arc::new(renderer.snapshot());
+            let secs = start.elapsed().as_secs_f64();
+            let published = Published {
+                generation: *generation,
+                samples_per_sec: film.spp() as f64 * film.pixel_count() as f64 / secs.max(1e-9),
+                noise: relative_noise(&film),
+                render_secs: secs,
+                film,
+                coarse: *coarse,
+            };
+            mailbox.lock().unwrap().latest = Some(published);
+            wake();
+        }
+    }
+}
+
+/// The UI's handle on the worker.
+pub struct WorkerHandle {
+    pub tx: Sender<Command>,
+    pub control: Arc<RenderControl>,
+    pub mailbox: Arc<Mutex<Mailbox>>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl WorkerHandle {
+    pub fn start(wake: impl Fn() + Send + 'static) -> Self {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let control = Arc::new(RenderControl::new());
+        let mailbox = Arc::new(Mutex::new(Mailbox::default()));
+        let thread = spawn(rx, control.clone(), mailbox.clone(), wake);
+        WorkerHandle { tx, control, mailbox, thread: Some(thread) }
+    }
+
+    /// Asks for a new render; the pass under way is abandoned.
+    pub fn render(&self, scene: &SceneFile, coarse: bool) -> u64 {
+        let generation = self.control.bump();
+        let _ = self.tx.send(Command::Render { scene: Box::new(scene.clone()), coarse, generation });
+        generation
+    }
+}
+
+impl Drop for WorkerHandle {
+    fn drop(&mut self) {
+        self.control.bump();
+        let _ = self.tx.send(Command::Quit);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}

@@ -1,0 +1,57 @@
+//! The window's render worker, without a window: scenes go in over the channel,
+//! finished passes come out, a change abandons the old render, and a scene that
+//! cannot be built shows up as an error message, not a crash.
+
+use app::gui::worker::WorkerHandle;
+use app::scene::SceneFile;
+use std::time::{Duration, Instant};
+
+fn small_scene(rho: f32) -> SceneFile {
+    let mut s = SceneFile::from_toml_str(
+        "[grid]\nbuiltin = \"cumulus\"\nresolution = 24\n[camera]\nwidth = 24\nheight = 16\n",
+        "t",
+    )
+    .unwrap();
+    s.medium.rho = rho;
+    s
+}
+
+fn wait_for(mut done: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !done() {
+        assert!(start.elapsed() < Duration::from_secs(60), "worker did not answer");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+#[test]
+fn worker_renders_restarts_and_reports_errors() {
+    let worker = WorkerHandle::start(|| {});
+    let g1 = worker.render(&small_scene(10.0), false);
+    wait_for(|| {
+        worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g1 && p.film.spp() >= 3)
+    });
+    let first = worker.mailbox.lock().unwrap().latest.clone().unwrap();
+    assert_eq!((first.film.width(), first.film.height()), (24, 16));
+    assert!(first.samples_per_sec > 0.0 && first.noise.is_finite());
+
+    // A change: the new generation replaces the old and starts from zero samples.
+    let g2 = worker.render(&small_scene(30.0), true);
+    assert!(g2 > g1);
+    wait_for(|| worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g2));
+    let second = worker.mailbox.lock().unwrap().latest.clone().unwrap();
+    assert!(second.coarse);
+    assert!(second.film.spp() >= 1);
+
+    // A scene whose cloud cannot be loaded: an error naming the file, no crash, and
+    // the worker keeps serving.
+    let mut bad = small_scene(10.0);
+    bad.grid.builtin = None;
+    bad.grid.file = Some("/nonexistent/cloud.vdb".into());
+    let g3 = worker.render(&bad, false);
+    wait_for(|| worker.mailbox.lock().unwrap().error.as_ref().is_some_and(|(g, _)| *g == g3));
+    let msg = worker.mailbox.lock().unwrap().error.clone().unwrap().1;
+    assert!(msg.contains("/nonexistent/cloud.vdb"), "{msg}");
+    let g4 = worker.render(&small_scene(5.0), false);
+    wait_for(|| worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g4));
+}
