@@ -237,6 +237,24 @@ impl DensityGrid {
         c0 + f.z * (c1 - c0)
     }
 
+    /// The largest value on the grid's outer layer of voxels: 0 means the cloud does not
+    /// touch its box (nothing is cut off at the bounds).
+    pub fn max_on_boundary(&self) -> f32 {
+        let n = self.dims;
+        let mut m = 0.0f32;
+        for z in 0..n.z {
+            for y in 0..n.y {
+                let on_yz = z == 0 || z == n.z - 1 || y == 0 || y == n.y - 1;
+                if on_yz {
+                    (0..n.x).for_each(|x| m = m.max(self.voxel(x, y, z)));
+                } else {
+                    m = m.max(self.voxel(0, y, z)).max(self.voxel(n.x - 1, y, z));
+                }
+            }
+        }
+        m
+    }
+
     /// Memory held by the voxel values, in bytes.
     pub fn memory_bytes(&self) -> usize {
         self.data.len() * std::mem::size_of::<f32>()
@@ -308,6 +326,17 @@ mod tests {
         }
         // Voxel centres return the voxel value.
         assert!((g.lookup(b.min + 0.5 * vs) - g.voxel(0, 0, 0)).abs() < 1e-5);
+    }
+
+    #[test]
+    fn boundary_maximum() {
+        let mut data = vec![0.0f32; 64];
+        data[1 + 4 * (1 + 4 * 1)] = 0.9; // interior
+        let g = DensityGrid::new(UVec3::splat(4), data.clone(), Vec3::ZERO, Vec3::ONE).unwrap();
+        assert_eq!(g.max_on_boundary(), 0.0);
+        data[3 + 4 * (2 + 4 * 1)] = 0.5; // on the x = 3 face
+        let g = DensityGrid::new(UVec3::splat(4), data, Vec3::ZERO, Vec3::ONE).unwrap();
+        assert_eq!(g.max_on_boundary(), 0.5);
     }
 
     #[test]

@@ -374,21 +374,7 @@ mod tests {
         let p = CloudParams { advection: 0.05, interior: 0.7, ..Default::default() };
         let g = build_grid(&p, 32).unwrap();
         assert!(g.max_value() <= 1.0 && g.max_value() > 0.9);
-        let n = 32;
-        for a in 0..n {
-            for b in 0..n {
-                for v in [
-                    g.voxel(0, a, b),
-                    g.voxel(n - 1, a, b),
-                    g.voxel(a, 0, b),
-                    g.voxel(a, n - 1, b),
-                    g.voxel(a, b, 0),
-                    g.voxel(a, b, n - 1),
-                ] {
-                    assert_eq!(v, 0.0, "cloud touches the box");
-                }
-            }
-        }
+        assert_eq!(g.max_on_boundary(), 0.0, "cloud touches the box");
     }
 
     #[test]
