@@ -156,3 +156,12 @@ fn bad_files_give_errors_not_crashes() {
         }
     }
 }
+
+/// Found by `cargo fuzz run vdb_import`: a damaged zip/blosc chunk size of 64 GiB
+/// made vdb-rs allocate it and abort the process. The tree scan refuses it first.
+#[test]
+fn fuzz_regression_huge_chunk() {
+    let data = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/fuzz_huge_chunk.vdb")).unwrap();
+    let e = read_vdb_bytes(&data, "fuzz_huge_chunk.vdb", None).unwrap_err();
+    assert!(matches!(e, VdbReadError::Corrupt { .. }), "{e}");
+}

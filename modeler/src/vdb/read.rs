@@ -132,11 +132,11 @@ fn preflight(data: &[u8]) -> Result<Vec<Descriptor>, (bool, String)> {
         return Err((true, String::new()));
     }
     let version = c.u32().map_err(corrupt)?;
-    if !(218..=224).contains(&version) {
+    if !(222..=224).contains(&version) {
         return Err((
             false,
             format!(
-                "unsupported: OpenVDB file format version {version}; Nimbus reads versions 218 to 224 (OpenVDB 3 to 11)"
+                "unsupported: OpenVDB file format version {version}; Nimbus reads versions 222 to 224 (OpenVDB 2 and later)"
             ),
         ));
     }
@@ -164,7 +164,7 @@ fn preflight(data: &[u8]) -> Result<Vec<Descriptor>, (bool, String)> {
             return Err(corrupt(format!("two grids named '{name}'")));
         }
         let mut g = Cursor { data: &data[..bp as usize], pos: gp as usize };
-        let compression = if version >= 222 { g.u32().map_err(corrupt)? } else { 0 };
+        let compression = g.u32().map_err(corrupt)?;
         let meta = g.metadata().map_err(corrupt)?;
         let half_meta =
             meta.iter().any(|(n, t, v)| n == "is_saved_as_half_float" && t == "bool" && v.first() == Some(&1));
@@ -178,17 +178,156 @@ fn preflight(data: &[u8]) -> Result<Vec<Descriptor>, (bool, String)> {
         let mut root_tiles = 0;
         if map_bytes > 0 && grid_type.starts_with("Tree_float_5_4_3") {
             g.take(map_bytes).map_err(corrupt)?;
-            let buffers = g.u32().map_err(corrupt)?;
-            if buffers != 1 {
-                return Err(corrupt(format!("grid '{name}' has {buffers} buffers")));
+            if half {
+                // Half-float trees store 16-bit values only inside compressed value
+                // arrays; compressed ones are refused below, raw ones carry no sizes
+                // to trust. Only the root tile count matters here.
+                g.take(8).map_err(corrupt)?; // buffer count, background (f32)
+                root_tiles = g.u32().map_err(corrupt)?;
+                out.push(Descriptor { name, grid_type, compression, half, map_type, root_tiles });
+                c.pos = ep as usize;
+                continue;
             }
-            g.take(if half { 2 } else { 4 }).map_err(corrupt)?; // background
-            root_tiles = g.u32().map_err(corrupt)?;
+            // Walk the whole tree: every mask, value block and compressed chunk must
+            // fit where the descriptor says, before vdb-rs allocates from these sizes.
+            let mut t = TreeScan {
+                c: Cursor { data: &data[..ep as usize], pos: g.pos },
+                compression,
+                value_size: 4,
+                leaves: Vec::new(),
+            };
+            root_tiles = t.topology().map_err(|e| corrupt(format!("grid '{name}': {e}")))?;
+            if t.c.pos != bp as usize {
+                return Err(corrupt(format!(
+                    "grid '{name}': tree topology ends at {} but its buffers start at {bp}",
+                    t.c.pos
+                )));
+            }
+            t.buffers().map_err(|e| corrupt(format!("grid '{name}': {e}")))?;
+            if t.c.pos != ep as usize {
+                return Err(corrupt(format!("grid '{name}': tree data ends at {} but the grid at {ep}", t.c.pos)));
+            }
         }
         out.push(Descriptor { name, grid_type, compression, half, map_type, root_tiles });
         c.pos = ep as usize;
     }
     Ok(out)
+}
+
+/// A structural walk of a `Tree_float_5_4_3` as OpenVDB writes it (file versions
+/// 222+): root, internal nodes (child mask, value mask, compressed values, children),
+/// leaf value masks, then every leaf's buffer. Nothing is decompressed; each size read
+/// from the file is checked against the bytes that remain.
+struct TreeScan<'a> {
+    c: Cursor<'a>,
+    compression: u32,
+    value_size: usize,
+    /// Number of active values of each leaf, in topology order (their buffers follow
+    /// in this order).
+    leaves: Vec<usize>,
+}
+
+fn popcount(mask: &[u8]) -> usize {
+    mask.iter().map(|b| b.count_ones() as usize).sum()
+}
+
+impl TreeScan<'_> {
+    /// Returns the number of root tiles.
+    fn topology(&mut self) -> Result<u32, String> {
+        let buffers = self.c.u32()?;
+        if buffers != 1 {
+            return Err(format!("{buffers} buffers per node"));
+        }
+        self.c.take(self.value_size)?; // background
+        let tiles = self.c.u32()?;
+        let children = self.c.u32()?;
+        if tiles as usize > self.c.data.len() || children as usize > self.c.data.len() {
+            return Err(format!("{tiles} root tiles and {children} root children"));
+        }
+        for _ in 0..tiles {
+            self.c.take(12 + self.value_size + 1)?; // origin, value, active
+        }
+        for _ in 0..children {
+            self.c.take(12)?; // origin
+            self.internal(5)?;
+        }
+        Ok(tiles)
+    }
+
+    /// An internal node with 2^(3 log2dim) entries; its children are internal nodes of
+    /// log2dim 4 (below a 5) or leaves (below a 4).
+    fn internal(&mut self, log2dim: u32) -> Result<(), String> {
+        let n = 1usize << (3 * log2dim);
+        let child_mask = self.c.take(n / 8)?;
+        let value_mask = self.c.take(n / 8)?;
+        self.values(n, popcount(value_mask))?;
+        for _ in 0..popcount(child_mask) {
+            if log2dim == 5 {
+                self.internal(4)?;
+            } else {
+                let mask = self.c.take(64)?; // leaf topology: its value mask
+                self.leaves.push(popcount(mask));
+            }
+        }
+        Ok(())
+    }
+
+    fn buffers(&mut self) -> Result<(), String> {
+        for i in 0..self.leaves.len() {
+            let active = popcount(self.c.take(64)?);
+            if active != self.leaves[i] {
+                return Err(format!("leaf {i}: buffer mask differs from the topology's"));
+            }
+            self.values(512, active)?;
+        }
+        Ok(())
+    }
+
+    /// One compressed value array of `n` values, `active` of them active
+    /// (OpenVDB's io::readCompressedValues).
+    fn values(&mut self, n: usize, active: usize) -> Result<(), String> {
+        let meta = self.c.u8()?;
+        if meta > 6 {
+            return Err(format!("node compression code {meta}"));
+        }
+        if matches!(meta, 2 | 4 | 5) {
+            self.c.take(self.value_size)?; // one inactive value
+        }
+        if meta == 5 {
+            self.c.take(self.value_size)?; // a second one
+        }
+        if matches!(meta, 3..=5) {
+            self.c.take(n / 8)?; // selection mask
+        }
+        let count = if self.compression & 0x2 != 0 && meta != 6 { active } else { n };
+        let bytes = count * self.value_size;
+        if self.compression & 0x5 != 0 {
+            // Blosc or zip: an i64 byte count, negative for data stored raw.
+            let size = self.c.i64()?;
+            let remaining = (self.c.data.len() - self.c.pos) as u64;
+            if size.unsigned_abs() > remaining {
+                return Err(format!("compressed block of {size} bytes at offset {} with {remaining} left", self.c.pos));
+            }
+            if size <= 0 {
+                if size.unsigned_abs() as usize != bytes {
+                    return Err(format!("raw block of {} bytes where {bytes} are due", -size));
+                }
+                self.c.take(bytes)?;
+            } else {
+                let chunk = self.c.take(size as usize)?;
+                if self.compression & 0x4 != 0 && count > 0 {
+                    // Blosc header: the uncompressed size sits at bytes 4..8.
+                    let nbytes = chunk.get(4..8).map(|b| u32::from_le_bytes(b.try_into().unwrap()) as usize);
+                    if nbytes != Some(bytes) {
+                        return Err(format!("blosc block unpacks to {nbytes:?} bytes where {bytes} are due"));
+                    }
+                }
+            }
+        } else {
+            self.c.take(bytes)?;
+        }
+        Ok(())
+    }
 }
 
 /// Routes panics inside vdb-rs to an error instead of the terminal.
