@@ -158,10 +158,14 @@ fn bad_files_give_errors_not_crashes() {
 }
 
 /// Found by `cargo fuzz run vdb_import`: a damaged zip/blosc chunk size of 64 GiB
-/// made vdb-rs allocate it and abort the process. The tree scan refuses it first.
+/// made vdb-rs allocate it and abort the process (the tree scan refuses it first); a
+/// metadata entry whose stored size disagreed with its type made vdb-rs lose its
+/// place and allocate a 4 GiB string (the preflight checks fixed-size types).
 #[test]
-fn fuzz_regression_huge_chunk() {
-    let data = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/fuzz_huge_chunk.vdb")).unwrap();
-    let e = read_vdb_bytes(&data, "fuzz_huge_chunk.vdb", None).unwrap_err();
-    assert!(matches!(e, VdbReadError::Corrupt { .. }), "{e}");
+fn fuzz_regressions() {
+    for name in ["fuzz_huge_chunk.vdb", "fuzz_metadata_size.vdb"] {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(name);
+        let e = read_vdb_bytes(&std::fs::read(path).unwrap(), name, None).unwrap_err();
+        assert!(matches!(e, VdbReadError::Corrupt { .. }), "{name}: {e}");
+    }
 }

@@ -117,6 +117,18 @@ impl<'a> Cursor<'a> {
                 let name = self.string()?;
                 let ty = self.string()?;
                 let n = self.u32()? as usize;
+                // vdb-rs reads these types at their fixed size whatever the stored
+                // size says, and would lose its place in the file.
+                let fixed = match ty.as_str() {
+                    "bool" => Some(1),
+                    "int32" | "float" => Some(4),
+                    "int64" => Some(8),
+                    "vec3i" => Some(12),
+                    _ => None,
+                };
+                if fixed.is_some_and(|f| f != n) {
+                    return Err(format!("metadata '{name}' of type {ty} stored in {n} bytes"));
+                }
                 Ok((name, ty, self.take(n)?.to_vec()))
             })
             .collect()
