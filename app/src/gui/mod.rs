@@ -47,8 +47,64 @@ impl Orbit {
     }
 }
 
+/// Something the user asked for, applied after the frame's layout.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Action {
+    OpenScene,
+    OpenVdb,
+    SaveScene,
+    ExportExr,
+    ExportPng,
+    ExportVdb,
+    ExportMitsuba,
+    Undo,
+    Redo,
+    Reset,
+}
+
+/// Parameter-change history for undo and redo.
+#[derive(Default)]
+struct History {
+    states: Vec<SceneFile>,
+    at: usize,
+}
+
+impl History {
+    /// Records `scene` if it differs from the current state (drops any redo tail).
+    fn record(&mut self, scene: &SceneFile) {
+        if self.states.get(self.at) == Some(scene) {
+            return;
+        }
+        self.states.truncate(self.at + 1);
+        self.states.push(scene.clone());
+        self.at = self.states.len() - 1;
+        if self.states.len() > 200 {
+            self.states.remove(0);
+            self.at -= 1;
+        }
+    }
+    fn undo(&mut self) -> Option<SceneFile> {
+        (self.at > 0).then(|| {
+            self.at -= 1;
+            self.states[self.at].clone()
+        })
+    }
+    fn redo(&mut self) -> Option<SceneFile> {
+        (self.at + 1 < self.states.len()).then(|| {
+            self.at += 1;
+            self.states[self.at].clone()
+        })
+    }
+}
+
+const STORAGE_SCENE: &str = "nimbus.scene";
+
 pub struct NimbusApp {
     scene: SceneFile,
+    history: History,
+    actions: Vec<Action>,
+    /// Last message for the user: (text, is_error).
+    message: Option<(String, bool)>,
     orbit: Orbit,
     sun_elevation_deg: f32,
     sun_azimuth_deg: f32,
@@ -63,17 +119,24 @@ pub struct NimbusApp {
 }
 
 impl NimbusApp {
-    pub fn new(ctx: &egui::Context) -> Self {
+    /// The window's state; the last session's scene is restored from `storage` if it
+    /// parses (unsaved work survives a restart), else the default cloud.
+    pub fn new(ctx: &egui::Context, storage: Option<&dyn eframe::Storage>) -> Self {
         let ctx = ctx.clone();
         let worker = WorkerHandle::start(move || ctx.request_repaint());
-        let scene = default_scene();
-        let sun = Vec3::from_array(scene.sun.direction);
+        let restored = storage
+            .and_then(|s| s.get_string(STORAGE_SCENE))
+            .and_then(|t| SceneFile::from_toml_str(&t, "last session").ok())
+            .filter(|s| s.validate().is_ok());
         let mut app = NimbusApp {
-            orbit: Orbit::from_preset(CameraPreset::Toplit, sun, scene.camera.distance),
-            sun_elevation_deg: (-sun.normalize().y).asin().to_degrees(),
-            sun_azimuth_deg: (-sun.x).atan2(-sun.z).to_degrees().rem_euclid(360.0),
-            preset_name: "builtin: cumulus".into(),
-            scene,
+            orbit: Orbit { yaw_deg: 0.0, pitch_deg: 0.0, distance: 2.8 },
+            sun_elevation_deg: 90.0,
+            sun_azimuth_deg: 0.0,
+            preset_name: String::new(),
+            scene: default_scene(),
+            history: History::default(),
+            actions: Vec::new(),
+            message: None,
             exposure: 1.0,
             tone: ToneMap::Filmic,
             view_buffer: Buffer::Full,
@@ -82,8 +145,214 @@ impl NimbusApp {
             texture: None,
             shown: None,
         };
-        app.apply_camera();
+        app.set_scene(restored.unwrap_or_else(default_scene));
+        app.history.record(&app.scene);
         app
+    }
+
+    /// Replaces the scene and the controls derived from it (orbit, sun angles, shape).
+    pub fn set_scene(&mut self, scene: SceneFile) {
+        let sun = Vec3::from_array(scene.sun.direction).normalize_or(Vec3::NEG_Y);
+        self.sun_elevation_deg = (-sun.y).clamp(-1.0, 1.0).asin().to_degrees();
+        self.sun_azimuth_deg = (-sun.x).atan2(-sun.z).to_degrees().rem_euclid(360.0);
+        let target = Vec3::from_array(scene.camera.target);
+        self.orbit = match scene.camera.position {
+            Some(p) => {
+                let from = Vec3::from_array(p) - target;
+                let len = from.length().max(1e-3);
+                Orbit {
+                    yaw_deg: from.x.atan2(from.z).to_degrees(),
+                    pitch_deg: (from.y / len).clamp(-1.0, 1.0).asin().to_degrees(),
+                    distance: len,
+                }
+            }
+            None => {
+                let preset =
+                    scene.camera.preset.as_deref().and_then(CameraPreset::from_name).unwrap_or(CameraPreset::Toplit);
+                Orbit::from_preset(preset, sun, scene.camera.distance)
+            }
+        };
+        let g = &scene.grid;
+        self.preset_name = match (&g.builtin, &g.preset, &g.file) {
+            (Some(b), _, _) => format!("builtin: {b}"),
+            (_, Some(p), _) => p.clone(),
+            (_, _, Some(f)) => format!(
+                "file: {}",
+                std::path::Path::new(f).file_name().map(|n| n.to_string_lossy()).unwrap_or_default()
+            ),
+            _ => "custom parameters".into(),
+        };
+        self.scene = scene;
+        self.apply_camera();
+    }
+
+    /// Queues an action (menu items, shortcuts, tests).
+    pub fn request(&mut self, action: Action) {
+        self.actions.push(action);
+    }
+
+    pub fn message(&self) -> Option<&(String, bool)> {
+        self.message.as_ref()
+    }
+
+    fn menu(&mut self, ui: &mut egui::Ui) {
+        egui::MenuBar::new().ui(ui, |ui| {
+            ui.menu_button("File", |ui| {
+                let items = [
+                    ("Open scene…  Ctrl+O", Action::OpenScene),
+                    ("Open VDB cloud…", Action::OpenVdb),
+                    ("Save scene…  Ctrl+S", Action::SaveScene),
+                    ("Export image (EXR, all buffers)…  Ctrl+E", Action::ExportExr),
+                    ("Export image (PNG)…", Action::ExportPng),
+                    ("Export cloud (VDB)…", Action::ExportVdb),
+                    ("Export Mitsuba scene…", Action::ExportMitsuba),
+                ];
+                for (label, action) in items {
+                    if ui.button(label).clicked() {
+                        self.actions.push(action);
+                        ui.close();
+                    }
+                }
+                ui.separator();
+                if ui.button("Quit").clicked() {
+                    ui.ctx().send_viewport_cmd(egui::ViewportCommand::Close);
+                }
+            });
+            ui.menu_button("Edit", |ui| {
+                for (label, action) in [
+                    ("Undo  Ctrl+Z", Action::Undo),
+                    ("Redo  Ctrl+Shift+Z", Action::Redo),
+                    ("Reset to the default cloud", Action::Reset),
+                ] {
+                    if ui.button(label).clicked() {
+                        self.actions.push(action);
+                        ui.close();
+                    }
+                }
+            });
+        });
+    }
+
+    fn shortcuts(&mut self, ctx: &egui::Context) {
+        use egui::{Key, KeyboardShortcut, Modifiers};
+        let table = [
+            (KeyboardShortcut::new(Modifiers::COMMAND | Modifiers::SHIFT, Key::Z), Action::Redo),
+            (KeyboardShortcut::new(Modifiers::COMMAND, Key::Y), Action::Redo),
+            (KeyboardShortcut::new(Modifiers::COMMAND, Key::Z), Action::Undo),
+            (KeyboardShortcut::new(Modifiers::COMMAND, Key::O), Action::OpenScene),
+            (KeyboardShortcut::new(Modifiers::COMMAND, Key::S), Action::SaveScene),
+            (KeyboardShortcut::new(Modifiers::COMMAND, Key::E), Action::ExportExr),
+        ];
+        for (shortcut, action) in table {
+            if ctx.input_mut(|i| i.consume_shortcut(&shortcut)) {
+                self.actions.push(action);
+            }
+        }
+    }
+
+    fn apply_actions(&mut self) {
+        for action in std::mem::take(&mut self.actions) {
+            let result = self.apply(action);
+            match result {
+                Ok(Some(done)) => self.message = Some((done, false)),
+                Ok(None) => {}
+                Err(e) => self.message = Some((format!("{e:#}"), true)),
+            }
+        }
+    }
+
+    fn apply(&mut self, action: Action) -> anyhow::Result<Option<String>> {
+        use anyhow::Context as _;
+        let file_dialog = || rfd::FileDialog::new();
+        let latest_film = || self.worker.mailbox.lock().unwrap().latest.as_ref().map(|p| p.film.clone());
+        match action {
+            Action::Undo => {
+                if let Some(s) = self.history.undo() {
+                    self.set_scene(s);
+                }
+                Ok(None)
+            }
+            Action::Redo => {
+                if let Some(s) = self.history.redo() {
+                    self.set_scene(s);
+                }
+                Ok(None)
+            }
+            Action::Reset => {
+                self.set_scene(default_scene());
+                Ok(None)
+            }
+            Action::OpenScene => {
+                let Some(path) = file_dialog().add_filter("Nimbus scene", &["toml"]).pick_file() else {
+                    return Ok(None);
+                };
+                let mut scene = SceneFile::load(&path)?;
+                scene.validate()?;
+                // Keep relative cloud files working after the scene moves into memory.
+                if let (Some(f), Some(dir)) = (&scene.grid.file, &scene.base_dir) {
+                    scene.grid.file = Some(dir.join(f).display().to_string());
+                }
+                self.set_scene(scene);
+                Ok(Some(format!("opened {}", path.display())))
+            }
+            Action::OpenVdb => {
+                let Some(path) = file_dialog().add_filter("OpenVDB", &["vdb"]).pick_file() else { return Ok(None) };
+                // Check it now, so a bad file is reported here rather than by the worker.
+                modeler::vdb::read_vdb(&path, None)?;
+                let mut scene = self.scene.clone();
+                let g = &mut scene.grid;
+                (g.builtin, g.preset, g.params, g.file, g.grid_name) =
+                    (None, None, None, Some(path.display().to_string()), None);
+                self.set_scene(scene);
+                Ok(Some(format!("opened {}", path.display())))
+            }
+            Action::SaveScene => {
+                let Some(path) =
+                    file_dialog().add_filter("Nimbus scene", &["toml"]).set_file_name("scene.toml").save_file()
+                else {
+                    return Ok(None);
+                };
+                crate::output::write_bytes_atomically(&path, self.scene.to_toml().as_bytes())?;
+                Ok(Some(format!("saved {}", path.display())))
+            }
+            Action::ExportExr | Action::ExportPng => {
+                let film = latest_film().context("nothing rendered yet")?;
+                let (ext, name) = if action == Action::ExportExr { ("exr", "OpenEXR") } else { ("png", "PNG") };
+                let Some(path) =
+                    file_dialog().add_filter(name, &[ext]).set_file_name(format!("nimbus.{ext}")).save_file()
+                else {
+                    return Ok(None);
+                };
+                if action == Action::ExportExr {
+                    crate::output::write_exr(&path, film.width(), film.height(), &crate::output::film_layers(&film))?;
+                } else {
+                    crate::output::write_png(
+                        &path,
+                        film.width(),
+                        film.height(),
+                        &film.mean(self.view_buffer),
+                        self.tone,
+                        self.exposure,
+                    )?;
+                }
+                Ok(Some(format!("wrote {} ({} spp)", path.display(), film.spp())))
+            }
+            Action::ExportVdb => {
+                let Some(path) = file_dialog().add_filter("OpenVDB", &["vdb"]).set_file_name("cloud.vdb").save_file()
+                else {
+                    return Ok(None);
+                };
+                let grid = self.scene.build_grid()?;
+                crate::output::write_bytes_atomically(&path, &modeler::vdb::vdb_bytes(&grid, "density")?)?;
+                Ok(Some(format!("wrote {}", path.display())))
+            }
+            Action::ExportMitsuba => {
+                let Some(dir) = file_dialog().pick_folder() else { return Ok(None) };
+                let scene = self.scene.build_scene(None)?;
+                crate::mitsuba::export(&scene, 256, &dir)?;
+                Ok(Some(format!("wrote cloud.vol and scene.xml to {}", dir.display())))
+            }
+        }
     }
 
     pub fn scene(&self) -> &SceneFile {
@@ -279,6 +548,11 @@ impl NimbusApp {
         if let Some((_, e)) = &mb.error {
             ui.colored_label(egui::Color32::from_rgb(255, 110, 90), e);
         }
+        if let Some((text, is_error)) = &self.message {
+            let colour =
+                if *is_error { egui::Color32::from_rgb(255, 110, 90) } else { egui::Color32::from_rgb(140, 200, 140) };
+            ui.colored_label(colour, text);
+        }
     }
 
     /// Sends the scene to the worker when it changed (coarse while the pointer is down).
@@ -286,6 +560,9 @@ impl NimbusApp {
         self.apply_camera();
         let dragging = ctx.input(|i| i.pointer.any_down());
         let changed = self.sent.as_ref().is_none_or(|(s, coarse)| *s != self.scene || (*coarse && !dragging));
+        if !dragging {
+            self.history.record(&self.scene);
+        }
         if changed {
             if let Err(e) = self.scene.validate() {
                 self.worker.mailbox.lock().unwrap().error = Some((0, e.to_string()));
@@ -301,11 +578,18 @@ impl NimbusApp {
 
 impl eframe::App for NimbusApp {
     fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
+        egui::Panel::top("menu").show(ui, |ui| self.menu(ui));
         egui::Panel::right("controls").resizable(true).default_size(300.0).show(ui, |ui| self.controls(ui));
         egui::Panel::bottom("status").show(ui, |ui| self.status(ui));
         egui::CentralPanel::default().show(ui, |ui| self.viewport(ui));
         let ctx = ui.ctx().clone();
+        self.shortcuts(&ctx);
+        self.apply_actions();
         self.sync(&ctx);
+    }
+
+    fn save(&mut self, storage: &mut dyn eframe::Storage) {
+        storage.set_string(STORAGE_SCENE, self.scene.to_toml());
     }
 }
 
@@ -315,7 +599,10 @@ pub fn run() -> anyhow::Result<()> {
         viewport: egui::ViewportBuilder::default().with_inner_size([1180.0, 760.0]).with_title("Nimbus"),
         ..Default::default()
     };
-    eframe::run_native("Nimbus", options, Box::new(|cc| Ok(Box::new(NimbusApp::new(&cc.egui_ctx))))).map_err(|e| {
-        anyhow::anyhow!("cannot open the Nimbus window: {e} (the subcommands work without a display: nimbus --help)")
-    })
+    eframe::run_native("Nimbus", options, Box::new(|cc| Ok(Box::new(NimbusApp::new(&cc.egui_ctx, cc.storage)))))
+        .map_err(|e| {
+            anyhow::anyhow!(
+                "cannot open the Nimbus window: {e} (the subcommands work without a display: nimbus --help)"
+            )
+        })
 }
