@@ -361,7 +361,7 @@ fn write_mitsuba_bundle(
     output::write_npy_image(&dir.join("nimbus_full.npy"), film.width(), film.height(), &film.mean(Buffer::Full))?;
     let cam = &scene.camera;
     let sun = scene.sun.expect("bench scene has a sun");
-    let g = scene.medium.phase().g();
+    let g = scene.medium.phase().mean_cosine();
     let json = serde_json::json!({
         "resolution": [cam.width(), cam.height()],
         "spp": film.spp(),

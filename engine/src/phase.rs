@@ -142,12 +142,6 @@ impl PhaseFunction {
             PhaseFunction::Murky => 0.5 * (2.0 * 33.0 / 34.0 - 1.0),
         }
     }
-
-    /// The asymmetry value the learned model's feature vector carries for this phase
-    /// function (the thesis trained on HG only; others map to their mean cosine).
-    pub fn g(&self) -> f32 {
-        self.mean_cosine()
-    }
 }
 
 /// Eqs. 2.12/2.13 are an equal mixture: half isotropic, half the lobe
