@@ -34,6 +34,31 @@ fn panels_edits_and_undo() {
     h.run_steps(2);
     assert_eq!(h.state().scene().medium.rho, 12.0);
 
+    // The worker accumulates, and a parameter change starts a new render of the new
+    // scene (a darker medium gives a darker image: nothing of the old one is kept).
+    let wait = |h: &mut Harness<'static, NimbusApp>, ok: &dyn Fn(Option<(u64, u32, f64)>) -> bool| {
+        let start = std::time::Instant::now();
+        while !ok(h.state().rendered()) {
+            assert!(start.elapsed().as_secs() < 120, "the worker did not render");
+            h.run_steps(1);
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+    };
+    let mut s = h.state().scene().clone();
+    (s.camera.width, s.camera.height, s.grid.resolution) = (32, 24, 32);
+    h.state_mut().set_scene(s);
+    h.run_steps(1);
+    let first = h.state().rendered().map(|r| r.0).unwrap_or(0);
+    wait(&mut h, &|r| r.is_some_and(|(g, spp, _)| g > first && spp >= 16));
+    let (generation, _, bright) = h.state().rendered().unwrap();
+    let mut s = h.state().scene().clone();
+    s.medium.albedo = 0.3;
+    h.state_mut().set_scene(s);
+    h.run_steps(1);
+    wait(&mut h, &|r| r.is_some_and(|(g, spp, _)| g > generation && spp >= 16));
+    let (_, _, dark) = h.state().rendered().unwrap();
+    assert!(dark < 0.7 * bright, "new render {dark} vs old {bright}");
+
     // Exporting before anything has rendered is refused with a message, not a crash.
     let mut fresh = harness();
     fresh.state_mut().request(Action::ExportExr);

@@ -195,6 +195,15 @@ impl NimbusApp {
         self.message.as_ref()
     }
 
+    /// The latest finished pass the worker published: (generation, spp, mean of the
+    /// full image).
+    pub fn rendered(&self) -> Option<(u64, u32, f64)> {
+        self.worker.mailbox.lock().unwrap().latest.as_ref().map(|p| {
+            let mean = p.film.mean(Buffer::Full).iter().map(|c| (c[0] + c[1] + c[2]) as f64 / 3.0).sum::<f64>();
+            (p.generation, p.film.spp(), mean / p.film.pixel_count().max(1) as f64)
+        })
+    }
+
     fn menu(&mut self, ui: &mut egui::Ui) {
         egui::MenuBar::new().ui(ui, |ui| {
             ui.menu_button("File", |ui| {
