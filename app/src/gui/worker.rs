@@ -129,7 +129,22 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             match built {
                 Ok(r) => {
                     mailbox.lock().unwrap().error = None;
-                    job = Some((r, generation, Instant::now(), coarse));
+                    let start = Instant::now();
+                    // A quick first look: one pass at a quarter of the resolution, so a
+                    // change shows within a fraction of a full pass.
+                    if let Some(film) = preview(&r, &control, generation) {
+                        let secs = start.elapsed().as_secs_f64();
+                        mailbox.lock().unwrap().latest = Some(Published {
+                            generation,
+                            samples_per_sec: film.pixel_count() as f64 / secs.max(1e-9),
+                            noise: relative_noise(&film),
+                            render_secs: secs,
+                            film: Arc::new(film),
+                            coarse: true,
+                        });
+                        wake();
+                    }
+                    job = Some((r, generation, start, coarse));
                 }
                 Err(e) => {
                     mailbox.lock().unwrap().error = Some((generation, e));
@@ -158,6 +173,19 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             wake();
         }
     }
+}
+
+/// One pass of the renderer's scene at a quarter of its resolution (None if the image
+/// is already small, or the pass was cancelled).
+fn preview(full: &Renderer, control: &RenderControl, generation: u64) -> Option<Film> {
+    let cam = full.scene().camera;
+    if cam.width() < 128 || cam.height() < 128 {
+        return None;
+    }
+    let small = cam.with_resolution(cam.width() / 4, cam.height() / 4).ok()?;
+    let scene = engine::Scene { camera: small, ..(**full.scene()).clone() };
+    let mut r = Renderer::new(Arc::new(scene), full.integrator().clone()).ok()?;
+    (r.render_pass(control, generation) == PassOutcome::Completed).then(|| r.snapshot())
 }
 
 /// The UI's handle on the worker.
