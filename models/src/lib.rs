@@ -3,3 +3,4 @@
 
 pub mod directions;
 pub mod features;
+pub mod ground_truth;
