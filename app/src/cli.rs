@@ -264,7 +264,7 @@ fn render(args: RenderArgs) -> Result<()> {
         "height": film.height(),
         "threads": threads,
         "stopped_early": outcome.stopped,
-        "mean_full": film.mean(Buffer::Full).iter().map(|p| (p[0] + p[1] + p[2]) as f64 / 3.0).sum::<f64>() / film.pixel_count() as f64,
+        "mean_full": film.average(Buffer::Full),
         "out": args.out,
     });
     println!("{summary}");
@@ -308,11 +308,11 @@ fn bench_render(args: BenchRenderArgs) -> Result<()> {
     );
     let mut base_rate = None;
     let mut results = Vec::new();
+    let base = file.build_scene(Some(grid.clone()))?;
     for &c in &cells {
-        let base = file.build_scene(Some(grid.clone()))?;
         let medium =
             engine::Medium::with_majorant_cells(grid.clone(), file.medium.rho, file.medium.albedo, file.phase(), c)?;
-        let scene = Arc::new(engine::Scene { medium, ..base });
+        let scene = Arc::new(engine::Scene { medium, ..base.clone() });
         let bar = progress_bar(args.spp as u64, false);
         let outcome =
             render_spp(scene.clone(), file.integrator()?, args.spp, &control, |d| bar.set_position(d as u64))?;

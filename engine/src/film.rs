@@ -109,25 +109,6 @@ impl Film {
         self.spp += 1;
     }
 
-    /// Merges another film of the same size (its samples follow ours).
-    pub fn merge(&mut self, other: &Film) {
-        assert_eq!((self.width, self.height), (other.width, other.height));
-        for (a, b) in self.layers.iter_mut().zip(&other.layers) {
-            for (x, y) in a.sum.iter_mut().zip(&b.sum) {
-                for c in 0..3 {
-                    x[c] += y[c];
-                }
-            }
-            for (x, y) in a.sum_sq.iter_mut().zip(&b.sum_sq) {
-                for c in 0..3 {
-                    x[c] += y[c];
-                }
-            }
-        }
-        self.spp += other.spp;
-        self.rejected += other.rejected;
-    }
-
     /// Per-pixel mean (the image) of a buffer.
     pub fn mean(&self, buffer: Buffer) -> Vec<[f32; 3]> {
         let inv = if self.spp > 0 { 1.0 / self.spp as f64 } else { 0.0 };
@@ -161,19 +142,10 @@ impl Film {
             .collect()
     }
 
-    /// Mean over pixels with a non-zero mean of the channel-averaged variance of the
-    /// pixel estimate (CONVENTIONS.md: TTUV = this times the render time).
-    pub fn mean_variance_of_mean(&self, buffer: Buffer) -> f64 {
-        let means = self.mean(Buffer::Full);
-        let vars = self.variance_of_mean(buffer);
-        let (mut sum, mut count) = (0.0f64, 0usize);
-        for (m, v) in means.iter().zip(&vars) {
-            if m.iter().any(|&x| x > 0.0) {
-                sum += (v[0] + v[1] + v[2]) as f64 / 3.0;
-                count += 1;
-            }
-        }
-        if count == 0 { 0.0 } else { sum / count as f64 }
+    /// Mean over all pixels and channels of a buffer's image.
+    pub fn average(&self, buffer: Buffer) -> f64 {
+        let sum: f64 = self.layers[buffer.index()].sum.iter().map(|s| s[0] + s[1] + s[2]).sum();
+        sum / (3.0 * self.spp.max(1) as f64 * self.pixel_count().max(1) as f64)
     }
 }
 
@@ -196,5 +168,6 @@ mod tests {
         // Samples 3 and 0: sample variance 4.5, variance of the mean 2.25.
         assert!((f.variance_of_mean(Buffer::Full)[0][0] - 2.25).abs() < 1e-6);
         assert!(m.iter().flatten().all(|x| x.is_finite()));
+        assert!((f.average(Buffer::Full) - 0.75).abs() < 1e-12);
     }
 }

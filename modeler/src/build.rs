@@ -60,23 +60,25 @@ pub struct Cellular {
 }
 
 impl Cellular {
+    /// Squared distance from `p` (in cells) to the feature point of cell `cell`.
+    #[inline]
+    fn feature_distance2(&self, cell: Vec3, p: Vec3) -> f32 {
+        let h = engine::rng::mix64(
+            self.seed
+                ^ (cell.x as i64 as u64).wrapping_mul(0x9E37_79B9)
+                ^ (cell.y as i64 as u64).wrapping_mul(0x85EB_CA6B_0000)
+                ^ (cell.z as i64 as u64).wrapping_mul(0xC2B2_AE35_0000_0000),
+        );
+        let jitter = Vec3::new((h & 0xFFFF) as f32, ((h >> 16) & 0xFFFF) as f32, ((h >> 32) & 0xFFFF) as f32) / 65536.0;
+        (cell + jitter - p).length_squared()
+    }
+
     #[inline]
     fn get(&self, p: Vec3) -> f32 {
         let p = p * self.frequency;
         let base = p.floor();
         let f = p - base;
-        let feature = |o: Vec3| {
-            let cell = base + o;
-            let h = engine::rng::mix64(
-                self.seed
-                    ^ (cell.x as i64 as u64).wrapping_mul(0x9E37_79B9)
-                    ^ (cell.y as i64 as u64).wrapping_mul(0x85EB_CA6B_0000)
-                    ^ (cell.z as i64 as u64).wrapping_mul(0xC2B2_AE35_0000_0000),
-            );
-            let jitter =
-                Vec3::new((h & 0xFFFF) as f32, ((h >> 16) & 0xFFFF) as f32, ((h >> 32) & 0xFFFF) as f32) / 65536.0;
-            (cell + jitter - p).length_squared()
-        };
+        let feature = |o: Vec3| self.feature_distance2(base + o, p);
         // The own cell first; a neighbour can only win if its box is nearer than the
         // best point so far, which skips most of the 26 hashes.
         let mut best = feature(Vec3::ZERO);
@@ -429,17 +431,7 @@ mod tests {
             for dz in -1..=1 {
                 for dy in -1..=1 {
                     for dx in -1..=1 {
-                        let cell = base + Vec3::new(dx as f32, dy as f32, dz as f32);
-                        let h = engine::rng::mix64(
-                            c.seed
-                                ^ (cell.x as i64 as u64).wrapping_mul(0x9E37_79B9)
-                                ^ (cell.y as i64 as u64).wrapping_mul(0x85EB_CA6B_0000)
-                                ^ (cell.z as i64 as u64).wrapping_mul(0xC2B2_AE35_0000_0000),
-                        );
-                        let j =
-                            Vec3::new((h & 0xFFFF) as f32, ((h >> 16) & 0xFFFF) as f32, ((h >> 32) & 0xFFFF) as f32)
-                                / 65536.0;
-                        best = best.min((cell + j - q).length_squared());
+                        best = best.min(c.feature_distance2(base + Vec3::new(dx as f32, dy as f32, dz as f32), q));
                     }
                 }
             }

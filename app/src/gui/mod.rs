@@ -198,10 +198,13 @@ impl NimbusApp {
     /// The latest finished pass the worker published: (generation, spp, mean of the
     /// full image).
     pub fn rendered(&self) -> Option<(u64, u32, f64)> {
-        self.worker.mailbox.lock().unwrap().latest.as_ref().map(|p| {
-            let mean = p.film.mean(Buffer::Full).iter().map(|c| (c[0] + c[1] + c[2]) as f64 / 3.0).sum::<f64>();
-            (p.generation, p.film.spp(), mean / p.film.pixel_count().max(1) as f64)
-        })
+        self.worker
+            .mailbox
+            .lock()
+            .unwrap()
+            .latest
+            .as_ref()
+            .map(|p| (p.generation, p.film.spp(), p.film.average(Buffer::Full)))
     }
 
     fn menu(&mut self, ui: &mut egui::Ui) {
