@@ -27,6 +27,16 @@ pub enum Command {
     Mitsuba(MitsubaArgs),
     /// Render every modeler preset into one contact-sheet PNG.
     Sheet(SheetArgs),
+    /// Make training data for the learned models (resumable, shardable).
+    Datagen {
+        #[command(subcommand)]
+        which: crate::datagen_cmd::DatagenCommand,
+    },
+    /// Train a learned model on generated data.
+    Train {
+        #[command(subcommand)]
+        which: crate::train_cmd::TrainCommand,
+    },
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -123,6 +133,10 @@ pub enum BenchCommand {
     Render(BenchRenderArgs),
     /// Time to rebuild clouds from presets (128^3 and 256^3).
     Model(BenchModelArgs),
+    /// Seconds per ground-truth data point, the thesis's table 5.1, one thread.
+    Datagen(crate::datagen_cmd::BenchDatagenArgs),
+    /// Nanoseconds per prediction of the global model, network alone and with features.
+    Predict(crate::train_cmd::BenchPredictArgs),
 }
 
 #[derive(Args, Debug)]
@@ -179,6 +193,10 @@ pub fn run(cli: Cli) -> Result<()> {
         }
         Some(Command::Bench { which: BenchCommand::Model(args) }) => crate::model_cmd::bench_model(args),
         Some(Command::Bench { which: BenchCommand::Render(args) }) => bench_render(args),
+        Some(Command::Bench { which: BenchCommand::Datagen(args) }) => crate::datagen_cmd::bench_datagen(args),
+        Some(Command::Datagen { which }) => crate::datagen_cmd::datagen(which),
+        Some(Command::Bench { which: BenchCommand::Predict(args) }) => crate::train_cmd::bench_predict(args),
+        Some(Command::Train { which }) => crate::train_cmd::train(which),
     }
 }
 

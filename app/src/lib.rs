@@ -3,6 +3,7 @@
 
 pub mod cli;
 pub mod cloud;
+pub mod datagen_cmd;
 #[cfg(feature = "gui")]
 pub mod gui;
 pub mod mitsuba;
@@ -10,3 +11,4 @@ pub mod model_cmd;
 pub mod output;
 pub mod progressive;
 pub mod scene;
+pub mod train_cmd;

@@ -172,28 +172,7 @@ pub fn write_png(
     write_atomically(path, |tmp| img.save_with_format(tmp, image::ImageFormat::Png).map_err(Into::into))
 }
 
-/// A NumPy .npy file (version 1.0, little-endian float32, C order).
-pub fn npy_bytes_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
-    assert_eq!(shape.iter().product::<usize>(), data.len());
-    let shape_str = match shape.len() {
-        1 => format!("({},)", shape[0]),
-        _ => format!("({})", shape.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")),
-    };
-    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_str}, }}");
-    // Pad so that the data starts at a multiple of 64 bytes (magic 6 + version 2 + len 2).
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = Vec::with_capacity(10 + header.len() + 4 * data.len());
-    out.extend_from_slice(b"\x93NUMPY\x01\x00");
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for v in data {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    out
-}
+pub use models::npy::npy_bytes_f32;
 
 /// Writes an (height, width, 3) float32 image as .npy.
 pub fn write_npy_image(path: &Path, width: u32, height: u32, rgb: &[[f32; 3]]) -> Result<()> {
@@ -234,16 +213,6 @@ pub fn mitsuba_vol_bytes(grid: &DensityGrid) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn npy_header_is_aligned_and_parsable() {
-        let b = npy_bytes_f32(&[2, 3], &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
-        let hlen = u16::from_le_bytes([b[8], b[9]]) as usize;
-        assert_eq!((10 + hlen) % 64, 0);
-        let header = std::str::from_utf8(&b[10..10 + hlen]).unwrap();
-        assert!(header.contains("'shape': (2, 3)"));
-        assert_eq!(f32::from_le_bytes(b[10 + hlen..14 + hlen].try_into().unwrap()), 1.0);
-    }
 
     #[test]
     fn tone_map_is_monotone_and_bounded() {

@@ -11,6 +11,66 @@
 //! -omega_L (thesis 5.1: "d_1 = -omega_L = (0, 0, 1)").
 
 use glam::{DVec3, Vec3};
+use serde::{Deserialize, Serialize};
+
+/// Which construction spreads the n_D directions over the sphere.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum DirectionSetKind {
+    /// The thesis's subdivided tetrahedron (default): n_D in {4, 16, 64}, nested.
+    #[default]
+    Tetrahedron,
+    /// A spherical Fibonacci set (more uniform, not nested), any n_D in 4..=256, rotated
+    /// so that its first point is d_1 = (0, 0, 1).
+    Fibonacci,
+}
+
+impl DirectionSetKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            DirectionSetKind::Tetrahedron => "tetrahedron",
+            DirectionSetKind::Fibonacci => "fibonacci",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "tetrahedron" => Some(DirectionSetKind::Tetrahedron),
+            "fibonacci" => Some(DirectionSetKind::Fibonacci),
+            _ => None,
+        }
+    }
+
+    /// The directions in the light frame, or None if n is not offered by this set.
+    pub fn directions(self, n: usize) -> Option<Vec<Vec3>> {
+        match self {
+            DirectionSetKind::Tetrahedron => direction_set(n),
+            DirectionSetKind::Fibonacci => fibonacci_set(n),
+        }
+    }
+}
+
+/// Spherical Fibonacci points z_i = 1 - (2 i + 1) / n, phi_i = i * golden angle, rotated
+/// about the x axis so that the first point becomes (0, 0, 1) exactly.
+pub fn fibonacci_set(n: usize) -> Option<Vec<Vec3>> {
+    if !(4..=256).contains(&n) {
+        return None;
+    }
+    let golden = std::f64::consts::PI * (3.0 - 5.0f64.sqrt());
+    let raw: Vec<DVec3> = (0..n)
+        .map(|i| {
+            let z = 1.0 - (2.0 * i as f64 + 1.0) / n as f64;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let phi = golden * i as f64;
+            DVec3::new(r * phi.cos(), r * phi.sin(), z)
+        })
+        .collect();
+    // The first point has phi = 0: it lies in the xz plane, so a rotation about y takes
+    // it to +z.
+    let angle = raw[0].x.atan2(raw[0].z);
+    let rot = glam::DMat3::from_rotation_y(-angle);
+    Some(raw.into_iter().map(|d| (rot * d).normalize().as_vec3()).collect())
+}
 
 /// Number of directions: 4, 16 or 64.
 pub fn direction_set(n: usize) -> Option<Vec<Vec3>> {
@@ -118,6 +178,31 @@ mod tests {
         }
         // The regular tetrahedron's face normals are 109.47 degrees apart.
         assert!((s4[1].dot(s4[0]) + 1.0 / 3.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn fibonacci_sets_are_unit_distinct_and_even() {
+        assert!(fibonacci_set(3).is_none());
+        for n in [4, 16, 64, 100] {
+            let s = fibonacci_set(n).unwrap();
+            assert!((s[0] - Vec3::Z).length() < 1e-6, "d_1 = +z");
+            // Balanced: the mean direction is small (4 points cannot cancel exactly).
+            let mean: Vec3 = s.iter().copied().sum::<Vec3>() / n as f32;
+            assert!(mean.length() < 0.5 / (n as f32).sqrt(), "{n}: {mean}");
+            // Nearest-neighbour angles are within a factor 2.5 of each other (even spread).
+            let nn: Vec<f32> = s
+                .iter()
+                .enumerate()
+                .map(|(i, a)| {
+                    s.iter().enumerate().filter(|&(j, _)| j != i).map(|(_, b)| a.dot(*b)).fold(-1.0, f32::max).acos()
+                })
+                .collect();
+            let (lo, hi) = nn.iter().fold((f32::MAX, 0.0f32), |(l, h), &v| (l.min(v), h.max(v)));
+            assert!(lo > 0.0 && hi / lo < 2.5, "{n}: {lo} .. {hi}");
+            for a in &s {
+                assert!((a.length() - 1.0).abs() < 1e-6);
+            }
+        }
     }
 
     #[test]

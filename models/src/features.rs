@@ -6,7 +6,7 @@
 //! analytic optical depth (homogeneous convex shapes), the renderer a ray-marched one
 //! through the density grid.
 
-use crate::directions::{LightFrame, direction_set};
+use crate::directions::{DirectionSetKind, LightFrame};
 use engine::Medium;
 use glam::Vec3;
 
@@ -24,9 +24,13 @@ pub struct FeatureExtractor {
 }
 
 impl FeatureExtractor {
-    /// n_d in {4, 16, 64}.
+    /// The thesis's tetrahedron set, n_d in {4, 16, 64}.
     pub fn new(n_d: usize) -> Option<Self> {
-        Some(FeatureExtractor { directions: direction_set(n_d)? })
+        Self::with_set(DirectionSetKind::Tetrahedron, n_d)
+    }
+
+    pub fn with_set(kind: DirectionSetKind, n_d: usize) -> Option<Self> {
+        Some(FeatureExtractor { directions: kind.directions(n_d)? })
     }
 
     pub fn n_directions(&self) -> usize {

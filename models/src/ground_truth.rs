@@ -94,16 +94,53 @@ impl ConvexMedium {
     }
 }
 
+/// Below this |g| the light-lobe technique is skipped: with a nearly flat phase function
+/// it only doubles the work of a vertex without reducing the variance.
+pub const LIGHT_LOBE_MIN_G: f32 = 0.25;
+
 /// One sample of L_i(x -> wo) for a light of unit radiance travelling along `omega_l`:
 /// NEE at x (single scattering), then a random walk with exact free flights, NEE at
 /// every vertex and Russian roulette on throughput.
+///
+/// Variance reduction for peaked phase functions (|g| >= [`LIGHT_LOBE_MIN_G`]): the
+/// NEE at vertex j+1 carries the factor p(-w, l) of the direction w chosen at vertex
+/// j, which is huge when w points at the light (HG at g = 0.85 peaks at 6.5 against a
+/// mean of 1/(4 pi)). So each vertex also samples a second direction from that lobe,
+/// p(-w, l), flies to a collision and does NEE there; the two techniques for that
+/// two-segment subpath are combined with the balance heuristic (one-sample MIS per
+/// technique), so the estimator stays unbiased while the peak is sampled directly.
+/// The walk itself always continues along the phase-sampled direction (throughput
+/// weights stay 1), so long paths in dense media keep their variance.
 pub fn sample_in_scattered(m: &ConvexMedium, omega_l: Vec3, x: Vec3, wo: Vec3, rng: &mut Rng) -> f32 {
+    sample_in_scattered_with(m, omega_l, x, wo, rng, m.phase.mean_cosine().abs() >= LIGHT_LOBE_MIN_G)
+}
+
+/// [`sample_in_scattered`] with the light-lobe technique switched on or off.
+pub fn sample_in_scattered_with(m: &ConvexMedium, omega_l: Vec3, x: Vec3, wo: Vec3, rng: &mut Rng, lobe: bool) -> f32 {
     let to_light = -omega_l;
     let (mut x, mut wo, mut beta, mut sum) = (x, wo, 1.0f32, 0.0f32);
+    // MIS weight of the NEE at the current vertex (1 at the query point).
+    let mut nee_weight = 1.0f32;
     let mut order = 1u32;
     loop {
-        sum += beta * m.phase.eval(wo, to_light) * m.transmittance_to_boundary(x, to_light);
+        sum += beta * nee_weight * m.phase.eval(wo, to_light) * m.transmittance_to_boundary(x, to_light);
+        if lobe {
+            // Technique B: direction from the light lobe of the next vertex's NEE.
+            let wb = m.phase.sample(-to_light, rng.uniform2()).wi;
+            let (pdf_a, pdf_b) = (m.phase.eval(wo, wb), m.phase.eval(-to_light, wb));
+            let t = engine::sampling::sample_exponential(rng.uniform(), m.sigma_t);
+            if t < m.exit_distance(x, wb) {
+                let y = x + wb * t;
+                // f / pdf_b * w_b = albedo p(wo, wb) p(-wb, l) T / pdf_b * pdf_b / (pdf_a + pdf_b)
+                let w = pdf_a * pdf_b / (pdf_a + pdf_b);
+                sum += beta * m.albedo * w * m.transmittance_to_boundary(y, to_light);
+            }
+        }
         let wi = m.phase.sample(wo, rng.uniform2()).wi;
+        if lobe {
+            let (pdf_a, pdf_b) = (m.phase.eval(wo, wi), m.phase.eval(-to_light, wi));
+            nee_weight = pdf_a / (pdf_a + pdf_b);
+        }
         let exit = m.exit_distance(x, wi);
         let t = engine::sampling::sample_exponential(rng.uniform(), m.sigma_t);
         if !(t < exit) {
@@ -231,6 +268,34 @@ mod tests {
             e.mean >= single - 4.0 * e.std_error && e.mean <= single + bound + 4.0 * e.std_error,
             "{e:?} vs {single}"
         );
+    }
+
+    /// The light-lobe MIS and the plain walk estimate the same L_i (forward and
+    /// backward scattering), and the MIS has lower variance for a peaked phase function.
+    #[test]
+    fn light_lobe_mis_is_unbiased_and_reduces_variance() {
+        let rot = Mat3::from_axis_angle(Vec3::new(0.3, 1.0, 0.2).normalize(), 0.4);
+        let queries = [(Vec3::new(0.1, 0.2, -0.3), Vec3::new(0.0, 0.6, 0.8)), (Vec3::ZERO, Vec3::X)];
+        let n = 200_000;
+        let m_tests = 2 * queries.len();
+        let mut var_ratio = vec![];
+        for g in [0.85f32, -0.7] {
+            let m = ConvexMedium::new(Shape::Box, rot * Mat3::from_diagonal(Vec3::new(1.0, 0.7, 0.8)), 4.0, 0.95, PhaseFunction::HenyeyGreenstein { g })
+                .unwrap();
+            for (i, &(x, wo)) in queries.iter().enumerate() {
+                let (mut a, mut b) = (Welford::default(), Welford::default());
+                let mut rng = Rng::new(11, i as u64, (g * 100.0) as u64);
+                for _ in 0..n {
+                    a.add(sample_in_scattered_with(&m, Vec3::NEG_Z, x, wo, &mut rng, false) as f64);
+                    b.add(sample_in_scattered_with(&m, Vec3::NEG_Z, x, wo, &mut rng, true) as f64);
+                }
+                let se = (a.std_error().powi(2) + b.std_error().powi(2)).sqrt();
+                assert!((a.mean - b.mean).abs() < z_bound(0.01, m_tests) * se, "g {g}: {} vs {} (se {se})", a.mean, b.mean);
+                var_ratio.push(a.variance() / b.variance());
+            }
+        }
+        // Forward-peaked g = 0.85: the MIS estimator's variance is markedly lower.
+        assert!(var_ratio[0] > 2.0 && var_ratio[1] > 2.0, "{var_ratio:?}");
     }
 
     #[test]

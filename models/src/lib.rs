@@ -1,6 +1,11 @@
-//! The thesis's learned transport models. So far: the feature extraction of the global
-//! transport model (thesis section 5.1), shared by data generation and rendering.
+//! The thesis's learned transport models: the global model's features (thesis section
+//! 5.1), ground truth and data generation (5.3), training and inference (5.2).
 
+pub mod datagen;
 pub mod directions;
 pub mod features;
 pub mod ground_truth;
+pub mod npy;
+pub mod global;
+pub mod plot;
+pub mod train;

@@ -1,0 +1,255 @@
+//! `nimbus datagen global|merge` and `nimbus bench datagen`.
+
+use crate::cli::init_threads;
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use models::datagen::{self, GlobalSpec, ShapeKind, Shard, parse_range};
+use models::directions::DirectionSetKind;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Nimbus version and the commit it was built from.
+pub fn code_version() -> String {
+    format!("nimbus {} ({})", env!("CARGO_PKG_VERSION"), option_env!("NIMBUS_GIT_COMMIT").unwrap_or("unknown commit"))
+}
+
+#[derive(Subcommand, Debug)]
+pub enum DatagenCommand {
+    /// Ground truth for the global model: random homogeneous convex media lit by a unit
+    /// directional light along (0, 0, -1); features + in-scattered radiance per point.
+    Global(GlobalArgs),
+    /// Join the shard directories of one data set into a complete one.
+    Merge(MergeArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct GlobalArgs {
+    /// Number of data points.
+    #[arg(long, default_value_t = 10_000)]
+    pub points: u64,
+    /// Extinction sigma_S range, MIN..MAX (or one value).
+    #[arg(long, default_value = "1..100")]
+    pub sigma: String,
+    /// Scattering albedo range.
+    #[arg(long, default_value = "1")]
+    pub albedo: String,
+    /// Henyey-Greenstein g range, inside (-1, 1).
+    #[arg(long, default_value = "0..0.9")]
+    pub g: String,
+    /// Shapes, comma separated: sphere, box, ellipsoid.
+    #[arg(long, default_value = "sphere,box,ellipsoid")]
+    pub shapes: String,
+    /// Keep the shapes axis-aligned (no random rotation).
+    #[arg(long)]
+    pub no_rotate: bool,
+    /// Scale factor range (per axis for boxes and ellipsoids); 1 keeps unit shapes.
+    #[arg(long, default_value = "1")]
+    pub scale: String,
+    /// Directions of the optical-depth features: 4, 16 or 64 (tetrahedron).
+    #[arg(long, default_value_t = 64)]
+    pub n_dirs: usize,
+    /// Direction set: tetrahedron (the thesis's) or fibonacci.
+    #[arg(long, default_value = "tetrahedron")]
+    pub directions: String,
+    /// Maximum relative half-width of the confidence interval of each target.
+    #[arg(long, default_value_t = 0.05)]
+    pub max_rel_error: f64,
+    /// Confidence level of that interval.
+    #[arg(long, default_value_t = 0.95)]
+    pub confidence: f64,
+    #[arg(long, default_value_t = 1000)]
+    pub min_samples: u64,
+    #[arg(long, default_value_t = 10_000_000)]
+    pub max_samples: u64,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Points per chunk file (the unit of resuming and sharding).
+    #[arg(long, default_value_t = 200)]
+    pub chunk_size: u64,
+    /// Make only part i of N (0-based), e.g. --shard 3/16; join with `nimbus datagen merge`.
+    #[arg(long, default_value = "0/1")]
+    pub shard: String,
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Output directory (created; an existing one with the same settings is resumed).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct MergeArgs {
+    /// Shard directories.
+    #[arg(required = true)]
+    pub shards: Vec<PathBuf>,
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+impl GlobalArgs {
+    pub fn spec(&self) -> Result<GlobalSpec> {
+        let shapes = self
+            .shapes
+            .split(',')
+            .map(|s| {
+                ShapeKind::parse(s).with_context(|| format!("--shapes: unknown shape {s:?} (sphere, box, ellipsoid)"))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let directions = DirectionSetKind::parse(&self.directions)
+            .with_context(|| format!("--directions: unknown set {:?} (tetrahedron, fibonacci)", self.directions))?;
+        let spec = GlobalSpec {
+            points: self.points,
+            sigma: parse_range("--sigma", &self.sigma)?,
+            albedo: parse_range("--albedo", &self.albedo)?,
+            g: parse_range("--g", &self.g)?,
+            shapes,
+            rotate: !self.no_rotate,
+            scale: parse_range("--scale", &self.scale)?,
+            n_dirs: self.n_dirs,
+            directions,
+            max_rel_error: self.max_rel_error,
+            confidence: self.confidence,
+            min_samples: self.min_samples,
+            max_samples: self.max_samples,
+            seed: self.seed,
+            chunk_size: self.chunk_size,
+        };
+        spec.validate()?;
+        Ok(spec)
+    }
+}
+
+fn points_bar(len: u64, quiet: bool) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(len);
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} points  ETA {eta}  {msg}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    bar
+}
+
+/// Ctrl-C sets the flag: the chunks on disk are kept, the run can be resumed.
+fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
+    let flag = Arc::new(AtomicBool::new(false));
+    let f = flag.clone();
+    let _ = ctrlc::set_handler(move || {
+        eprintln!("\nstopping: finished chunks are kept; run the same command again to resume");
+        f.store(true, Ordering::Relaxed);
+    });
+    flag
+}
+
+pub fn datagen(cmd: DatagenCommand) -> Result<()> {
+    match cmd {
+        DatagenCommand::Global(args) => {
+            let spec = args.spec()?;
+            let shard = Shard::parse(&args.shard)?;
+            let threads = init_threads(args.threads)?;
+            let owned: u64 = (0..spec.n_chunks())
+                .filter(|&c| shard.owns(c))
+                .map(|c| (spec.points - c * spec.chunk_size).min(spec.chunk_size))
+                .sum();
+            eprintln!(
+                "data set: {} points ({} in shard {}/{}), {} threads, into {}",
+                spec.points,
+                owned,
+                shard.index,
+                shard.count,
+                threads,
+                args.out.display()
+            );
+            let bar = points_bar(owned, args.quiet);
+            let cancel = cancel_on_ctrl_c();
+            let t = std::time::Instant::now();
+            let m = datagen::generate(&spec, shard, &args.out, &code_version(), &|n| bar.set_position(n), &cancel)?;
+            bar.finish_and_clear();
+            println!(
+                "{} {} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
+                if m.complete { "complete:" } else { "shard done:" },
+                owned,
+                t.elapsed().as_secs_f64(),
+                m.counts.seconds,
+                m.counts.path_samples,
+                args.out.display()
+            );
+            Ok(())
+        }
+        DatagenCommand::Merge(args) => {
+            let m = datagen::merge(&args.shards, &args.out)?;
+            println!("merged {} shards: {} points into {}", args.shards.len(), m.counts.points, args.out.display());
+            Ok(())
+        }
+    }
+}
+
+#[derive(Args, Debug)]
+pub struct BenchDatagenArgs {
+    /// Data points per cell of the table.
+    #[arg(long, default_value_t = 24)]
+    pub points: u64,
+    /// sigma_S values (the thesis's table 5.1: 10, 25, 50, 100).
+    #[arg(long, value_delimiter = ',', default_value = "10,25,50,100")]
+    pub sigma: Vec<f32>,
+    /// g values (the thesis's: 0, 0.85).
+    #[arg(long, value_delimiter = ',', default_value = "0,0.85")]
+    pub g: Vec<f32>,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+/// Thesis table 5.1: seconds per data point, one thread of a Xeon E5-2697 v2.
+fn thesis_seconds(sigma: f32, g: f32) -> Option<f64> {
+    let col = [10.0, 25.0, 50.0, 100.0].iter().position(|&s| s == sigma)?;
+    match g {
+        0.0 => Some([0.15, 0.79, 3.19, 13.66][col]),
+        0.85 => Some([0.12, 0.44, 1.71, 6.39][col]),
+        _ => None,
+    }
+}
+
+/// Reproduces the thesis's table 5.1 on one thread: unit sphere, albedo 1, 5 % at 95 %.
+pub fn bench_datagen(args: BenchDatagenArgs) -> Result<()> {
+    if args.points == 0 {
+        bail!("--points must be at least 1");
+    }
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    println!("# nimbus bench datagen: seconds per data point, one thread (unit sphere, albedo 1, 5 % at 95 %)");
+    println!("# {} points per cell; thesis: Xeon E5-2697 v2 (2013), this run: another processor", args.points);
+    println!("| sigma_S | g | Nimbus s/point | mean samples/point | thesis s/point | thesis / Nimbus |");
+    println!("|---|---|---|---|---|---|");
+    for &g in &args.g {
+        for &sigma in &args.sigma {
+            let spec = GlobalSpec {
+                points: args.points,
+                sigma: [sigma, sigma],
+                albedo: [1.0, 1.0],
+                g: [g, g],
+                shapes: vec![ShapeKind::Sphere],
+                rotate: false,
+                seed: args.seed,
+                ..Default::default()
+            };
+            spec.validate()?;
+            let fe = models::features::FeatureExtractor::new(spec.n_dirs).expect("64 directions");
+            let t = std::time::Instant::now();
+            let samples: u64 =
+                pool.install(|| (0..args.points).map(|i| datagen::generate_point(&spec, &fe, i).samples).sum());
+            let per = t.elapsed().as_secs_f64() / args.points as f64;
+            let thesis = thesis_seconds(sigma, g);
+            println!(
+                "| {sigma} | {g} | {per:.4} | {} | {} | {} |",
+                samples / args.points,
+                thesis.map_or("-".into(), |s| format!("{s}")),
+                thesis.map_or("-".into(), |s| format!("{:.1}x", s / per))
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,286 @@
+//! `nimbus train global` and `nimbus bench predict`.
+
+use crate::cli::init_threads;
+use crate::datagen_cmd::code_version;
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use engine::{InScatterPredictor, Rng};
+use indicatif::{ProgressBar, ProgressStyle};
+use models::global::{Activation, GlobalModel};
+use models::train::{EpochRecord, Optimizer, TrainConfig, TrainData, TrainObserver};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+#[derive(Subcommand, Debug)]
+pub enum TrainCommand {
+    /// Train the global model (thesis chapter 5) on data sets from `nimbus datagen global`.
+    Global(TrainGlobalArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct TrainGlobalArgs {
+    /// Data-set directories (all of one feature layout).
+    #[arg(required = true)]
+    pub data: Vec<PathBuf>,
+    /// Output prefix: writes PREFIX.safetensors, PREFIX.json (sidecar), PREFIX.loss.csv,
+    /// PREFIX.loss.png and the checkpoint PREFIX.checkpoint/.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Hidden layer widths.
+    #[arg(long, value_delimiter = ',', default_value = "200,100")]
+    pub hidden: Vec<usize>,
+    /// relu, tanh or silu.
+    #[arg(long, default_value = "relu")]
+    pub activation: String,
+    #[arg(long, default_value_t = 10)]
+    pub epochs: usize,
+    #[arg(long, default_value_t = 1000)]
+    pub batch: usize,
+    /// adam or sgd (with --momentum).
+    #[arg(long, default_value = "adam")]
+    pub optimizer: String,
+    #[arg(long, default_value_t = 0.9)]
+    pub momentum: f64,
+    /// Learning rate of the first epoch.
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    /// Learning-rate factor per epoch.
+    #[arg(long, default_value_t = 0.8)]
+    pub lr_decay: f64,
+    /// Held-out test fraction.
+    #[arg(long, default_value_t = 0.2)]
+    pub test_fraction: f64,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Continue from PREFIX.checkpoint/ (same settings and data).
+    #[arg(long)]
+    pub resume: bool,
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+impl TrainGlobalArgs {
+    pub fn config(&self) -> Result<TrainConfig> {
+        let activation = Activation::parse(&self.activation)
+            .with_context(|| format!("--activation: unknown {:?} (relu, tanh, silu)", self.activation))?;
+        let optimizer = match self.optimizer.as_str() {
+            "adam" => Optimizer::Adam,
+            "sgd" => Optimizer::Sgd { momentum: self.momentum },
+            o => bail!("--optimizer: unknown {o:?} (adam, sgd)"),
+        };
+        let cfg = TrainConfig {
+            hidden: self.hidden.clone(),
+            activation,
+            epochs: self.epochs,
+            batch: self.batch,
+            optimizer,
+            lr: self.lr,
+            lr_decay: self.lr_decay,
+            test_fraction: self.test_fraction,
+            seed: self.seed,
+        };
+        cfg.validate()?;
+        Ok(cfg)
+    }
+}
+
+struct BarObserver {
+    bar: ProgressBar,
+    cancel: Arc<AtomicBool>,
+}
+
+impl TrainObserver for BarObserver {
+    fn batch(&self, epoch: usize, done: usize, total: usize) {
+        if done == 1 {
+            self.bar.set_length(total as u64);
+            self.bar.set_message(format!("epoch {}", epoch + 1));
+        }
+        self.bar.set_position(done as u64);
+    }
+
+    fn epoch(&self, r: &EpochRecord) {
+        self.bar.println(format!(
+            "epoch {:>3}  lr {:.2e}  train MSE {:.5}  test MSE {:.5}  ({:.1} s)",
+            r.epoch, r.lr, r.train_mse, r.test_mse, r.seconds
+        ));
+    }
+
+    fn cancelled(&self) -> bool {
+        self.cancel.load(Ordering::Relaxed)
+    }
+}
+
+pub fn train(cmd: TrainCommand) -> Result<()> {
+    let TrainCommand::Global(args) = cmd;
+    let cfg = args.config()?;
+    let threads = init_threads(args.threads)?;
+    let t = std::time::Instant::now();
+    let data = TrainData::load(&args.data)?;
+    eprintln!(
+        "{} points ({} features) from {} data set(s), loaded in {:.1} s; {threads} threads",
+        data.len(),
+        data.n_features(),
+        args.data.len(),
+        t.elapsed().as_secs_f64()
+    );
+    let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(1) };
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} batches  {msg}  ETA {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    let cancel = Arc::new(AtomicBool::new(false));
+    let c = cancel.clone();
+    let _ = ctrlc::set_handler(move || {
+        eprintln!("\nstopping: the last finished epoch is checkpointed; continue with --resume");
+        c.store(true, Ordering::Relaxed);
+    });
+    let command: Vec<String> = std::env::args().collect();
+    let observer = BarObserver { bar, cancel };
+    let (_, report) =
+        models::train::train(&data, &cfg, &args.out, args.resume, &command.join(" "), &code_version(), &observer)?;
+    observer.bar.finish_and_clear();
+    println!(
+        "trained on {} points, tested on {} ({} dropped as non-finite) in {:.1} s ({:.0} samples/s)",
+        report.train_points, report.test_points, report.dropped_points, report.seconds, report.samples_per_second
+    );
+    println!(
+        "test MSE (transformed, standardized) {:.5} (target variance {:.3}); relative error of L_i: median {:.2} %, 90th percentile {:.2} %",
+        report.test_mse,
+        report.test_target_variance,
+        100.0 * report.rel_error_median,
+        100.0 * report.rel_error_p90
+    );
+    println!("wrote {}.safetensors, .json, .loss.csv, .loss.png", args.out.display());
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct BenchPredictArgs {
+    /// Model to time (default: the shipped one; a Glorot-initialized [200, 100] network
+    /// with n_D = 64 if it cannot be loaded).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Predictions per measurement.
+    #[arg(long, default_value_t = 200_000)]
+    pub n: usize,
+    /// Density scale of the 128^3 benchmark cloud (scene-a).
+    #[arg(long, default_value_t = 40.0)]
+    pub rho: f32,
+}
+
+/// The model the renderer loads by default.
+pub fn default_model_path() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../assets/models/global.safetensors")
+}
+
+/// Nanoseconds per prediction (network alone, features + network on a 128^3 cloud)
+/// against the cost of a path-traced scattering event in the same cloud; one thread.
+pub fn bench_predict(args: BenchPredictArgs) -> Result<()> {
+    let path = args.model.clone().unwrap_or_else(default_model_path);
+    let model = match GlobalModel::load(&path) {
+        Ok(m) => m,
+        Err(e) if args.model.is_none() => {
+            eprintln!("note: {e}; timing an untrained [200, 100] network instead");
+            untrained_model()?
+        }
+        Err(e) => return Err(e.into()),
+    };
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    pool.install(|| bench_predict_inner(&model, &args))
+}
+
+fn untrained_model() -> Result<GlobalModel> {
+    let layout = models::global::FeatureLayout::current(Default::default(), 64);
+    let net = models::train::Network::glorot(&[68, 200, 100, 1], Activation::Relu, 1, &candle_core::Device::Cpu)?;
+    let sidecar = models::global::Sidecar {
+        format: models::global::MODEL_FORMAT.into(),
+        format_version: models::global::MODEL_FORMAT_VERSION,
+        features: layout,
+        standardization: models::global::Standardization {
+            feature_mean: vec![0.0; 68],
+            feature_std: vec![1.0; 68],
+            target: models::global::TARGET_TRANSFORM.into(),
+            target_mean: 0.0,
+            target_std: 1.0,
+        },
+        hidden: vec![200, 100],
+        activation: Activation::Relu,
+        training: serde_json::Value::Null,
+    };
+    Ok(GlobalModel::new(sidecar, net.to_mlp()?))
+}
+
+fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<()> {
+    let n = args.n.max(1000);
+    let n_f = model.feature_extractor().len();
+    let mut rng = Rng::new(1, 2, 3);
+    let xs: Vec<f32> = (0..1024 * n_f).map(|_| 2.0 * rng.uniform() - 1.0).collect();
+    let mut scratch = model.mlp.scratch();
+    // Network alone.
+    let t = std::time::Instant::now();
+    let mut sink = 0.0f32;
+    for i in 0..n {
+        sink += model.mlp.forward(&xs[(i % 1024) * n_f..(i % 1024 + 1) * n_f], &mut scratch);
+    }
+    let net_ns = t.elapsed().as_secs_f64() * 1e9 / n as f64;
+    // Batched entry point.
+    let mut out = vec![0.0f32; 1024];
+    let t = std::time::Instant::now();
+    for _ in 0..n / 1024 {
+        model.mlp.forward_batch(&xs, &mut out, &mut scratch);
+        sink += out[7];
+    }
+    let batch_ns = t.elapsed().as_secs_f64() * 1e9 / (n / 1024 * 1024) as f64;
+    // Features + network at points inside the cloud, against path-traced scattering
+    // events (free flight by delta tracking + a sun shadow ray by ratio tracking, the
+    // work of one vertex in the integrator).
+    let params = modeler::preset("scene-a").context("scene-a preset")?;
+    let grid = modeler::build_grid(&params, 128)?;
+    let medium = engine::Medium::new(std::sync::Arc::new(grid), args.rho, 1.0, engine::PhaseFunction::HenyeyGreenstein { g: 0.85 })?;
+    let sun = engine::Sun::new(glam::Vec3::new(0.0, -1.0, 0.0), glam::Vec3::ONE, 0.0)?;
+    let mut points = vec![];
+    let b = medium.bounds();
+    while points.len() < 4096 {
+        let p = b.min + (b.max - b.min) * glam::Vec3::new(rng.uniform(), rng.uniform(), rng.uniform());
+        if medium.grid().lookup(p) > 0.05 {
+            points.push((p, engine::sampling::sample_uniform_sphere(rng.uniform2())));
+        }
+    }
+    let m = (n / 20).max(1000);
+    let t = std::time::Instant::now();
+    for i in 0..m {
+        let (p, w) = points[i % points.len()];
+        sink += model.predict(&medium, &sun, p, w);
+    }
+    let full_ns = t.elapsed().as_secs_f64() * 1e9 / m as f64;
+    let t = std::time::Instant::now();
+    let phase = medium.phase();
+    for i in 0..m {
+        let (p, w) = points[i % points.len()];
+        let wi = phase.sample(w, rng.uniform2()).wi;
+        let tmax = medium.exit_distance(p, wi);
+        if let engine::medium::FreeFlight::Collision { t } = medium.sample_free_flight(p, wi, tmax, &mut rng) {
+            sink += t;
+        }
+        let to_sun = -sun.direction();
+        sink += medium.transmittance_ratio(p, to_sun, medium.exit_distance(p, to_sun), &mut rng);
+    }
+    let event_ns = t.elapsed().as_secs_f64() * 1e9 / m as f64;
+    std::hint::black_box(sink);
+    let features_ns = full_ns - net_ns;
+    println!("# nimbus bench predict: one thread, {} ({} features)", model.name(), n_f);
+    println!("| measurement | ns per prediction | goal |");
+    println!("|---|---|---|");
+    println!("| network alone, one at a time | {net_ns:.0} | <= 3000 |");
+    println!("| network alone, batched (1024) | {batch_ns:.0} | |");
+    println!("| features + network, scene-a 128^3, rho {} | {full_ns:.0} | |", args.rho);
+    println!(
+        "| features alone | {features_ns:.0} = {:.1} path-traced scattering events ({event_ns:.0} ns each) | <= 5 events |",
+        features_ns / event_ns
+    );
+    Ok(())
+}

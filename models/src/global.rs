@@ -1,0 +1,403 @@
+//! The global transport model as the renderer uses it: the model files (safetensors
+//! weights + JSON sidecar), the target transformation (thesis eqs. 5.8-5.9), and an
+//! allocation-free f32 evaluator of the MLP that implements the engine's
+//! [`InScatterPredictor`].
+//!
+//! Target transformation: y = ln(1 + L_i / p(omega_q, omega_L)) with p the
+//! Henyey-Greenstein phase value of single scattering toward omega_q (cos = cos theta,
+//! theta the query angle from the light), then standardized; every feature is
+//! standardized too. Statistics come from the training split and live in the sidecar.
+
+use crate::directions::DirectionSetKind;
+use crate::features::FeatureExtractor;
+use engine::{InScatterPredictor, Medium, PhaseFunction, Sun};
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+use std::cell::RefCell;
+use std::path::{Path, PathBuf};
+
+pub const MODEL_FORMAT: &str = "nimbus-global-model";
+pub const MODEL_FORMAT_VERSION: u32 = 1;
+
+/// How theta and phi are measured; a model trained under another convention is refused.
+pub const ANGLE_CONVENTION: &str = "light frame: z = -omega_L (toward the light), x, y = engine::sampling::coordinate_system(z); theta = acos(z) of omega_q in [0, pi], phi = atan2(y, x) in [0, 2 pi); omega_q points away from the query point";
+
+/// The activation of the hidden layers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Activation {
+    Relu,
+    Tanh,
+    /// x * sigmoid(x)
+    Silu,
+}
+
+impl Activation {
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "relu" => Some(Activation::Relu),
+            "tanh" => Some(Activation::Tanh),
+            "silu" => Some(Activation::Silu),
+            _ => None,
+        }
+    }
+
+    #[inline(always)]
+    fn apply(self, x: f32) -> f32 {
+        match self {
+            Activation::Relu => x.max(0.0),
+            Activation::Tanh => x.tanh(),
+            Activation::Silu => x / (1.0 + (-x).exp()),
+        }
+    }
+}
+
+/// The feature layout a model expects.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FeatureLayout {
+    pub n_dirs: usize,
+    pub direction_set: DirectionSetKind,
+    pub names: Vec<String>,
+    pub angle_convention: String,
+    /// "tau_hat = ln(1 / (1 + tau))" (thesis eq. 5.7)
+    pub optical_depth: String,
+}
+
+impl FeatureLayout {
+    /// What this code computes for `n_dirs` directions of `set`.
+    pub fn current(set: DirectionSetKind, n_dirs: usize) -> Self {
+        let mut names: Vec<String> = ["albedo", "g", "theta", "phi"].iter().map(|s| s.to_string()).collect();
+        names.extend((1..=n_dirs).map(|i| format!("tau_hat_{i}")));
+        FeatureLayout {
+            n_dirs,
+            direction_set: set,
+            names,
+            angle_convention: ANGLE_CONVENTION.into(),
+            optical_depth: "tau_hat = ln(1 / (1 + tau))".into(),
+        }
+    }
+
+    /// Differences from what the code computes, one per line; None if it matches.
+    pub fn mismatch(&self) -> Option<String> {
+        if self.direction_set.directions(self.n_dirs).is_none() {
+            return Some(format!("n_dirs {} is not offered by the {} set", self.n_dirs, self.direction_set.name()));
+        }
+        let cur = FeatureLayout::current(self.direction_set, self.n_dirs);
+        let mut out = vec![];
+        if self.names != cur.names {
+            out.push(format!("feature names {:?} differ from the code's {:?}", self.names, cur.names));
+        }
+        if self.angle_convention != cur.angle_convention {
+            out.push(format!("angle convention {:?} differs from the code's {:?}", self.angle_convention, cur.angle_convention));
+        }
+        if self.optical_depth != cur.optical_depth {
+            out.push(format!("optical depth transform {:?} differs from the code's {:?}", self.optical_depth, cur.optical_depth));
+        }
+        (!out.is_empty()).then(|| out.join("; "))
+    }
+}
+
+/// Feature and target standardization, from the training split.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Standardization {
+    pub feature_mean: Vec<f32>,
+    /// 1 where a feature is constant in the training data.
+    pub feature_std: Vec<f32>,
+    /// "ln(1 + L_i / p_HG(g, cos theta))" (thesis eqs. 5.8-5.9)
+    pub target: String,
+    pub target_mean: f32,
+    pub target_std: f32,
+}
+
+pub const TARGET_TRANSFORM: &str = "ln(1 + L_i / p_HG(g, cos theta))";
+
+/// The single-scattering phase value of eq. 5.8 from a feature row (g and theta).
+#[inline]
+pub fn single_scattering_phase(features: &[f32]) -> f32 {
+    PhaseFunction::HenyeyGreenstein { g: features[1] }.eval_cos(features[2].cos())
+}
+
+/// eqs. 5.8-5.9 (before standardization).
+#[inline]
+pub fn transform_target(features: &[f32], l_i: f32) -> f32 {
+    (l_i.max(0.0) / single_scattering_phase(features)).ln_1p()
+}
+
+/// The inverse: L_i from the un-standardized network output.
+#[inline]
+pub fn untransform_target(features: &[f32], y: f32) -> f32 {
+    (y.exp_m1() * single_scattering_phase(features)).max(0.0)
+}
+
+/// Everything about a model but its weights.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Sidecar {
+    pub format: String,
+    pub format_version: u32,
+    pub features: FeatureLayout,
+    pub standardization: Standardization,
+    /// Widths of the hidden layers, e.g. [200, 100].
+    pub hidden: Vec<usize>,
+    pub activation: Activation,
+    /// Free-form records of the training run (data, settings, errors, command, time).
+    pub training: serde_json::Value,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error("{path}: {why}")]
+    File { path: PathBuf, why: String },
+    #[error("{path}: the model does not fit this version of Nimbus: {why}")]
+    Layout { path: PathBuf, why: String },
+}
+
+/// One dense layer, weights stored input-major ([in][out_padded]) so that a forward
+/// pass is a sequence of axpy's over contiguous output rows, which the compiler turns
+/// into full-width vector FMAs.
+#[derive(Clone, Debug)]
+struct Dense {
+    inputs: usize,
+    outputs: usize,
+    /// Outputs rounded up to a multiple of 16 (padding weights are zero).
+    stride: usize,
+    w: Vec<f32>,
+    b: Vec<f32>,
+}
+
+impl Dense {
+    /// From a row-major [out][in] weight matrix (candle's / PyTorch's layout).
+    fn new(inputs: usize, outputs: usize, w_out_in: &[f32], b: &[f32]) -> Self {
+        let stride = outputs.div_ceil(16) * 16;
+        let mut w = vec![0.0; inputs * stride];
+        for o in 0..outputs {
+            for i in 0..inputs {
+                w[i * stride + o] = w_out_in[o * inputs + i];
+            }
+        }
+        let mut bb = vec![0.0; stride];
+        bb[..outputs].copy_from_slice(b);
+        Dense { inputs, outputs, stride, w, b: bb }
+    }
+}
+
+/// The MLP evaluated in f32 without allocation.
+#[derive(Clone, Debug)]
+pub struct Mlp {
+    layers: Vec<Dense>,
+    activation: Activation,
+    /// Widest padded layer: the scratch size.
+    width: usize,
+}
+
+/// Per-thread scratch space of the evaluator.
+#[derive(Clone, Debug, Default)]
+pub struct Scratch {
+    a: Vec<f32>,
+    b: Vec<f32>,
+    features: Vec<f32>,
+}
+
+#[inline(always)]
+fn layer_forward(layer: &Dense, x: &[f32], y: &mut [f32], act: Option<Activation>) {
+    let s = layer.stride;
+    let y = &mut y[..s];
+    y.copy_from_slice(&layer.b);
+    for (i, &xi) in x[..layer.inputs].iter().enumerate() {
+        let row = &layer.w[i * s..(i + 1) * s];
+        for (yo, wo) in y.chunks_exact_mut(16).zip(row.chunks_exact(16)) {
+            for k in 0..16 {
+                yo[k] = wo[k].mul_add(xi, yo[k]);
+            }
+        }
+    }
+    if let Some(a) = act {
+        for v in y[..layer.outputs].iter_mut() {
+            *v = a.apply(*v);
+        }
+    }
+}
+
+#[inline(always)]
+fn forward_generic(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
+    let (mut cur, mut next) = (std::mem::take(&mut scratch.a), std::mem::take(&mut scratch.b));
+    cur[..x.len()].copy_from_slice(x);
+    let last = mlp.layers.len() - 1;
+    for (l, layer) in mlp.layers.iter().enumerate() {
+        layer_forward(layer, &cur, &mut next, (l < last).then_some(mlp.activation));
+        std::mem::swap(&mut cur, &mut next);
+    }
+    let out = cur[0];
+    scratch.a = cur;
+    scratch.b = next;
+    out
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn forward_avx2(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
+    forward_generic(mlp, x, scratch)
+}
+
+impl Mlp {
+    /// Layers as (inputs, outputs, row-major [out][in] weights, bias).
+    pub fn new(layers: &[(usize, usize, Vec<f32>, Vec<f32>)], activation: Activation) -> Self {
+        let layers: Vec<Dense> = layers.iter().map(|(i, o, w, b)| Dense::new(*i, *o, w, b)).collect();
+        let width = layers.iter().map(|l| l.stride.max(l.inputs)).max().unwrap_or(16);
+        Mlp { layers, activation, width }
+    }
+
+    pub fn n_inputs(&self) -> usize {
+        self.layers[0].inputs
+    }
+
+    /// Scratch space for this network (allocate once per thread).
+    pub fn scratch(&self) -> Scratch {
+        Scratch { a: vec![0.0; self.width], b: vec![0.0; self.width], features: vec![0.0; self.n_inputs()] }
+    }
+
+    fn ensure(&self, scratch: &mut Scratch) {
+        if scratch.a.len() < self.width || scratch.features.len() < self.n_inputs() {
+            *scratch = self.scratch();
+        }
+    }
+
+    /// The network's output for one (standardized) input; allocation free once
+    /// `scratch` has been sized by [`Mlp::scratch`].
+    #[inline]
+    pub fn forward(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
+        debug_assert_eq!(x.len(), self.n_inputs());
+        self.ensure(scratch);
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU supports the features the function was compiled for.
+            return unsafe { forward_avx2(self, x, scratch) };
+        }
+        forward_generic(self, x, scratch)
+    }
+
+    /// Batched entry point: `xs` holds rows of n_inputs values, one output per row.
+    pub fn forward_batch(&self, xs: &[f32], out: &mut [f32], scratch: &mut Scratch) {
+        let n = self.n_inputs();
+        for (row, o) in xs.chunks_exact(n).zip(out.iter_mut()) {
+            *o = self.forward(row, scratch);
+        }
+    }
+}
+
+/// A trained global model: layout, standardization and network.
+#[derive(Clone, Debug)]
+pub struct GlobalModel {
+    pub sidecar: Sidecar,
+    pub mlp: Mlp,
+    features: FeatureExtractor,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+impl GlobalModel {
+    pub fn new(sidecar: Sidecar, mlp: Mlp) -> Self {
+        let features = FeatureExtractor::with_set(sidecar.features.direction_set, sidecar.features.n_dirs)
+            .expect("layout checked");
+        GlobalModel { sidecar, mlp, features }
+    }
+
+    /// Loads `path` (.safetensors) and its sidecar (same name, .json); checks that the
+    /// sidecar's feature layout is what this code computes and that the weights have
+    /// the shapes the sidecar's architecture says, all finite.
+    pub fn load(path: &Path) -> Result<GlobalModel, ModelError> {
+        let file_err = |p: &Path, why: String| ModelError::File { path: p.to_owned(), why };
+        let json_path = path.with_extension("json");
+        let text = std::fs::read_to_string(&json_path).map_err(|e| file_err(&json_path, e.to_string()))?;
+        let sidecar: Sidecar = serde_json::from_str(&text)
+            .map_err(|e| file_err(&json_path, format!("not a Nimbus global-model sidecar: {e}")))?;
+        if sidecar.format != MODEL_FORMAT || sidecar.format_version != MODEL_FORMAT_VERSION {
+            return Err(ModelError::Layout {
+                path: json_path,
+                why: format!(
+                    "format {} v{} is not {MODEL_FORMAT} v{MODEL_FORMAT_VERSION}",
+                    sidecar.format, sidecar.format_version
+                ),
+            });
+        }
+        if let Some(why) = sidecar.features.mismatch() {
+            return Err(ModelError::Layout { path: json_path, why });
+        }
+        let n_f = sidecar.features.names.len();
+        let st = &sidecar.standardization;
+        if st.feature_mean.len() != n_f || st.feature_std.len() != n_f || st.target != TARGET_TRANSFORM {
+            return Err(ModelError::Layout {
+                path: json_path,
+                why: format!(
+                    "standardization has {} means / {} deviations for {n_f} features, target {:?} (the code uses {TARGET_TRANSFORM:?})",
+                    st.feature_mean.len(),
+                    st.feature_std.len(),
+                    st.target
+                ),
+            });
+        }
+        let bytes = std::fs::read(path).map_err(|e| file_err(path, e.to_string()))?;
+        let tensors = candle_core::safetensors::load_buffer(&bytes, &candle_core::Device::Cpu)
+            .map_err(|e| file_err(path, format!("not a readable safetensors file: {e}")))?;
+        let mut widths = vec![n_f];
+        widths.extend(&sidecar.hidden);
+        widths.push(1);
+        let mut layers = vec![];
+        for l in 0..widths.len() - 1 {
+            let (i, o) = (widths[l], widths[l + 1]);
+            let get = |name: String, shape: &[usize]| -> Result<Vec<f32>, ModelError> {
+                let t = tensors.get(&name).ok_or_else(|| file_err(path, format!("tensor {name} is missing")))?;
+                if t.dims() != shape {
+                    return Err(file_err(path, format!("tensor {name} has shape {:?}, expected {shape:?}", t.dims())));
+                }
+                let v: Vec<f32> = t
+                    .to_dtype(candle_core::DType::F32)
+                    .and_then(|t| t.flatten_all())
+                    .and_then(|t| t.to_vec1())
+                    .map_err(|e| file_err(path, format!("tensor {name}: {e}")))?;
+                if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+                    return Err(file_err(path, format!("tensor {name} holds a non-finite value at {k}")));
+                }
+                Ok(v)
+            };
+            layers.push((i, o, get(format!("layers.{l}.weight"), &[o, i])?, get(format!("layers.{l}.bias"), &[o])?));
+        }
+        let mlp = Mlp::new(&layers, sidecar.activation);
+        Ok(GlobalModel::new(sidecar, mlp))
+    }
+
+    /// L_i for one raw feature row (standardized here), using `scratch`.
+    #[inline]
+    pub fn predict_features(&self, raw: &[f32], scratch: &mut Scratch) -> f32 {
+        let st = &self.sidecar.standardization;
+        self.mlp.ensure(scratch);
+        let mut x = std::mem::take(&mut scratch.features);
+        for (k, v) in raw.iter().enumerate() {
+            x[k] = (v - st.feature_mean[k]) / st.feature_std[k];
+        }
+        let y = self.mlp.forward(&x, scratch);
+        scratch.features = x;
+        untransform_target(raw, y * st.target_std + st.target_mean)
+    }
+
+    pub fn feature_extractor(&self) -> &FeatureExtractor {
+        &self.features
+    }
+}
+
+impl InScatterPredictor for GlobalModel {
+    /// Features ray marched through the grid (skipping empty space, stopping once the
+    /// transmittance is negligible), then the network; per-thread scratch, no allocation.
+    fn predict(&self, medium: &Medium, sun: &Sun, x: Vec3, omega: Vec3) -> f32 {
+        let mut feat = [0.0f32; 4 + 256];
+        let n = self.features.len();
+        self.features.extract_grid(medium, sun.direction(), x, omega, &mut feat[..n]);
+        let v = SCRATCH.with(|s| self.predict_features(&feat[..n], &mut s.borrow_mut()));
+        if v.is_finite() { v } else { 0.0 }
+    }
+
+    fn name(&self) -> &str {
+        "global MLP"
+    }
+}

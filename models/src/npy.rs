@@ -1,0 +1,146 @@
+//! NumPy `.npy` files (format version 1.0, little-endian float32, C order): what the
+//! data generator writes, the trainer reads, and every Python user can open with
+//! `numpy.load`. Also the atomic file write used for every file the models write.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum NpyError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: not a float32 .npy file we can read: {why}")]
+    Format { path: PathBuf, why: String },
+}
+
+/// A temporary path beside `path` (same directory, so the rename is atomic), unique per
+/// process and thread.
+fn temp_path(path: &Path) -> PathBuf {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
+    let thread = format!("{:?}", std::thread::current().id()).replace(|c: char| !c.is_ascii_alphanumeric(), "");
+    path.with_file_name(format!(".{name}.{}.{thread}.tmp", std::process::id()))
+}
+
+/// Writes `bytes` to a temporary file beside `path`, syncs it and renames it over
+/// `path`: a crash or Ctrl-C never leaves half a file.
+pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    let tmp = temp_path(path);
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// The bytes of a float32 `.npy` file of the given shape.
+pub fn npy_bytes_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
+    assert_eq!(shape.iter().product::<usize>(), data.len());
+    let shape_str = match shape.len() {
+        1 => format!("({},)", shape[0]),
+        _ => format!("({})", shape.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")),
+    };
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_str}, }}");
+    // Pad so that the data starts at a multiple of 64 bytes (magic 6 + version 2 + len 2).
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = Vec::with_capacity(10 + header.len() + 4 * data.len());
+    out.extend_from_slice(b"\x93NUMPY\x01\x00");
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// Writes a float32 array atomically.
+pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), NpyError> {
+    write_bytes_atomically(path, &npy_bytes_f32(shape, data))
+        .map_err(|source| NpyError::Io { path: path.to_owned(), source })
+}
+
+/// Parses a float32 `.npy` file: its shape and data.
+pub fn parse_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>), String> {
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return Err("missing the \\x93NUMPY magic".into());
+    }
+    let (header_start, header_len): (usize, usize) = match bytes[6] {
+        1 => (10, u16::from_le_bytes([bytes[8], bytes[9]]) as usize),
+        2 | 3 if bytes.len() >= 12 => (12, u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize),
+        v => return Err(format!("format version {v} is not supported")),
+    };
+    let data_start = header_start.checked_add(header_len).filter(|&e| e <= bytes.len()).ok_or("header runs past the end")?;
+    let header = std::str::from_utf8(&bytes[header_start..data_start]).map_err(|_| "header is not text")?;
+    let field = |key: &str| -> Result<&str, String> {
+        let at = header.find(&format!("'{key}'")).ok_or(format!("header has no '{key}'"))?;
+        Ok(header[at + key.len() + 2..].trim_start().trim_start_matches(':').trim_start())
+    };
+    if !field("descr")?.starts_with("'<f4'") {
+        return Err(format!("dtype is not little-endian float32 ('<f4'): {header}"));
+    }
+    if !field("fortran_order")?.starts_with("False") {
+        return Err("Fortran order is not supported".into());
+    }
+    let shape_text = field("shape")?;
+    let close = shape_text.find(')').ok_or("unterminated shape")?;
+    let shape: Vec<usize> = shape_text[1..close]
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| s.parse::<usize>().map_err(|_| format!("bad shape entry {s:?}")))
+        .collect::<Result<_, _>>()?;
+    let count = shape.iter().try_fold(1usize, |a, &b| a.checked_mul(b)).ok_or("shape overflows")?;
+    let payload = &bytes[data_start..];
+    if count.checked_mul(4) != Some(payload.len()) {
+        return Err(format!("shape {shape:?} needs {} bytes of data, the file has {}", count * 4, payload.len()));
+    }
+    let data = payload.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();
+    Ok((shape, data))
+}
+
+/// Reads a float32 `.npy` file.
+pub fn read_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>), NpyError> {
+    let bytes = std::fs::read(path).map_err(|source| NpyError::Io { path: path.to_owned(), source })?;
+    parse_f32(&bytes).map_err(|why| NpyError::Format { path: path.to_owned(), why })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_and_alignment() {
+        let b = npy_bytes_f32(&[2, 3], &[1.0, 2.0, 3.0, 4.0, 5.0, -6.5]);
+        let header_len = u16::from_le_bytes([b[8], b[9]]) as usize;
+        assert_eq!((10 + header_len) % 64, 0);
+        let (shape, data) = parse_f32(&b).unwrap();
+        assert_eq!(shape, vec![2, 3]);
+        assert_eq!(data, vec![1.0, 2.0, 3.0, 4.0, 5.0, -6.5]);
+        let (shape, _) = parse_f32(&npy_bytes_f32(&[4], &[0.0; 4])).unwrap();
+        assert_eq!(shape, vec![4]);
+    }
+
+    #[test]
+    fn bad_files_are_refused_with_a_reason() {
+        let good = npy_bytes_f32(&[2, 2], &[1.0; 4]);
+        assert!(parse_f32(&good[..good.len() - 1]).unwrap_err().contains("needs 16 bytes"));
+        assert!(parse_f32(b"hello").unwrap_err().contains("magic"));
+        let mut f8 = good.clone();
+        let at = f8.windows(3).position(|w| w == b"<f4").unwrap();
+        f8[at + 2] = b'8';
+        assert!(parse_f32(&f8).unwrap_err().contains("float32"));
+        for cut in 0..good.len() {
+            let _ = parse_f32(&good[..cut]); // never panics
+        }
+    }
+}

@@ -1,0 +1,206 @@
+//! Training, model files and the fast evaluator of the global model.
+
+use candle_core::{Device, Tensor};
+use engine::Rng;
+use models::datagen::{GlobalSpec, Shard};
+use models::directions::DirectionSetKind;
+use models::global::{Activation, FeatureLayout, GlobalModel, single_scattering_phase};
+use models::train::{EpochRecord, Network, Optimizer, Quiet, TrainConfig, TrainData, TrainObserver, train};
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+
+fn temp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("nimbus-train-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A synthetic data set whose transformed target is a known smooth function of the
+/// features: ln(1 + L / p) = f(x).
+fn smooth_data(n: usize, seed: u64) -> (TrainData, impl Fn(&[f32]) -> f32) {
+    let layout = FeatureLayout::current(DirectionSetKind::Tetrahedron, 4);
+    let f = |x: &[f32]| 1.5 + 0.5 * (1.5 * x[4]).sin() + 0.3 * x[2].cos() * x[5] / 4.0 - 0.2 * x[1] * x[6] / 4.0;
+    let mut rng = Rng::new(seed, 1, 2);
+    let mut features = vec![];
+    let mut l_i = vec![];
+    for _ in 0..n {
+        let row = [
+            1.0,
+            rng.uniform() * 0.9,
+            rng.uniform() * std::f32::consts::PI,
+            rng.uniform() * std::f32::consts::TAU,
+            -4.0 * rng.uniform(),
+            -4.0 * rng.uniform(),
+            -4.0 * rng.uniform(),
+            -4.0 * rng.uniform(),
+        ];
+        l_i.push(single_scattering_phase(&row) * f(&row).exp_m1());
+        features.extend_from_slice(&row);
+    }
+    (TrainData { layout, features, l_i, sources: vec![format!("synthetic-{seed}")] }, f)
+}
+
+#[test]
+fn training_recovers_a_known_smooth_function() {
+    let (data, _) = smooth_data(6000, 1);
+    let cfg = TrainConfig { hidden: vec![32, 16], epochs: 40, batch: 100, lr: 3e-3, lr_decay: 0.95, ..Default::default() };
+    let dir = temp("smooth");
+    let (_, report) = train(&data, &cfg, &dir.join("m"), false, "test", "test", &Quiet).unwrap();
+    // The standardized target has variance 1; a recovered function leaves a few per cent.
+    assert!(report.test_mse < 0.02 * report.test_target_variance, "{report:?}");
+    assert!(report.rel_error_median < 0.05, "{report:?}");
+    assert_eq!(report.dropped_points, 0);
+    let h = &report.history;
+    assert!(h.last().unwrap().test_mse < 0.2 * h[0].test_mse, "the loss falls");
+    assert!(dir.join("m.loss.csv").exists() && dir.join("m.loss.png").exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn sgd_with_momentum_also_learns() {
+    let (data, _) = smooth_data(3000, 2);
+    let cfg = TrainConfig {
+        hidden: vec![32, 16],
+        epochs: 15,
+        batch: 100,
+        optimizer: Optimizer::Sgd { momentum: 0.9 },
+        lr: 0.02,
+        activation: Activation::Tanh,
+        ..Default::default()
+    };
+    let dir = temp("sgd");
+    let (_, report) = train(&data, &cfg, &dir.join("m"), false, "test", "test", &Quiet).unwrap();
+    assert!(report.test_mse < 0.25 * report.test_target_variance, "{report:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A tiny ground-truth data set made by the generator itself trains to a test error
+/// well below the variance of its targets.
+#[test]
+fn a_generated_data_set_trains() {
+    let dir = temp("gen");
+    let spec = GlobalSpec {
+        points: 1500,
+        sigma: [0.5, 8.0],
+        g: [0.0, 0.8],
+        n_dirs: 16,
+        max_rel_error: 0.15,
+        min_samples: 128,
+        chunk_size: 250,
+        seed: 3,
+        ..Default::default()
+    };
+    models::datagen::generate(&spec, Shard::ALL, &dir.join("data"), "test", &|_| {}, &AtomicBool::new(false)).unwrap();
+    let data = TrainData::load(&[dir.join("data")]).unwrap();
+    assert_eq!(data.n_features(), 20);
+    let cfg = TrainConfig { hidden: vec![64, 32], epochs: 30, batch: 50, lr: 2e-3, lr_decay: 0.95, ..Default::default() };
+    let (model, report) = train(&data, &cfg, &dir.join("m"), false, "test", "test", &Quiet).unwrap();
+    assert!(report.test_mse < 0.25 * report.test_target_variance, "{report:?}");
+    assert_eq!(model.sidecar.features.n_dirs, 16);
+    // A data set of another layout is refused by name.
+    let other = GlobalSpec { n_dirs: 4, points: 10, chunk_size: 10, ..spec.clone() };
+    models::datagen::generate(&other, Shard::ALL, &dir.join("data4"), "test", &|_| {}, &AtomicBool::new(false)).unwrap();
+    let e = TrainData::load(&[dir.join("data"), dir.join("data4")]).err().unwrap().to_string();
+    assert!(e.contains("4 tetrahedron directions") && e.contains("16 tetrahedron"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn fast_evaluator_matches_candle_and_files_round_trip() {
+    let dev = Device::Cpu;
+    let widths = [68, 200, 100, 1];
+    for act in [Activation::Relu, Activation::Tanh, Activation::Silu] {
+        let net = Network::glorot(&widths, act, 5, &dev).unwrap();
+        // Non-zero biases so that they are tested too.
+        let mut rng = Rng::new(9, 0, 0);
+        for (_, b) in &net.params {
+            let n = b.as_tensor().dims1().unwrap();
+            let v: Vec<f32> = (0..n).map(|_| rng.uniform() - 0.5).collect();
+            b.set(&Tensor::from_vec(v, n, &dev).unwrap()).unwrap();
+        }
+        let mlp = net.to_mlp().unwrap();
+        let mut scratch = mlp.scratch();
+        let n = 256;
+        let xs: Vec<f32> = (0..n * 68).map(|_| 4.0 * rng.uniform() - 2.0).collect();
+        let candle: Vec<f32> =
+            net.forward(&Tensor::from_slice(&xs, (n, 68), &dev).unwrap()).unwrap().to_vec1().unwrap();
+        let mut batch = vec![0.0; n];
+        mlp.forward_batch(&xs, &mut batch, &mut scratch);
+        for i in 0..n {
+            let one = mlp.forward(&xs[i * 68..(i + 1) * 68], &mut scratch);
+            assert_eq!(one, batch[i]);
+            let tol = 1e-5 * candle[i].abs().max(1.0);
+            assert!((one - candle[i]).abs() <= tol, "{act:?} row {i}: {one} vs {}", candle[i]);
+        }
+    }
+}
+
+#[test]
+fn save_load_predicts_identically_and_bad_files_are_refused() {
+    let (data, _) = smooth_data(800, 3);
+    let cfg = TrainConfig { hidden: vec![16, 8], epochs: 2, ..Default::default() };
+    let dir = temp("files");
+    let out = dir.join("m");
+    let (model, _) = train(&data, &cfg, &out, false, "test", "test", &Quiet).unwrap();
+    let loaded = GlobalModel::load(&dir.join("m.safetensors")).unwrap();
+    let (mut s1, mut s2) = (model.mlp.scratch(), loaded.mlp.scratch());
+    for row in data.features.chunks_exact(8).take(100) {
+        assert_eq!(model.predict_features(row, &mut s1).to_bits(), loaded.predict_features(row, &mut s2).to_bits());
+    }
+    let weights = std::fs::read(dir.join("m.safetensors")).unwrap();
+    let sidecar = std::fs::read_to_string(dir.join("m.json")).unwrap();
+    let load_err = |w: &[u8], s: &str| {
+        std::fs::write(dir.join("bad.safetensors"), w).unwrap();
+        std::fs::write(dir.join("bad.json"), s).unwrap();
+        GlobalModel::load(&dir.join("bad.safetensors")).err().expect("refused").to_string()
+    };
+    // Truncated and corrupted weights.
+    let e = load_err(&weights[..weights.len() / 2], &sidecar);
+    assert!(e.contains("bad.safetensors"), "{e}");
+    let mut flipped = weights.clone();
+    flipped[3] ^= 0x55;
+    assert!(load_err(&flipped, &sidecar).contains("bad.safetensors"));
+    // A weight replaced by NaN.
+    let mut nan = weights.clone();
+    let end = nan.len();
+    nan[end - 4..].copy_from_slice(&f32::NAN.to_le_bytes());
+    assert!(load_err(&nan, &sidecar).contains("non-finite"));
+    // Sidecar of another layout / architecture.
+    let e = load_err(&weights, &sidecar.replace("\"tau_hat_4\"", "\"tau_4\""));
+    assert!(e.contains("feature names"), "{e}");
+    let e = load_err(&weights, &sidecar.replacen("16,", "17,", 1));
+    assert!(e.contains("shape"), "{e}");
+    let e = load_err(&weights, "{ not json");
+    assert!(e.contains("bad.json"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+struct StopAfter(usize, std::sync::atomic::AtomicUsize);
+impl TrainObserver for StopAfter {
+    fn epoch(&self, r: &EpochRecord) {
+        self.1.store(r.epoch, std::sync::atomic::Ordering::SeqCst);
+    }
+    fn cancelled(&self) -> bool {
+        self.1.load(std::sync::atomic::Ordering::SeqCst) >= self.0
+    }
+}
+
+#[test]
+fn an_interrupted_training_resumes_to_the_same_weights() {
+    let (data, _) = smooth_data(1000, 4);
+    let cfg = TrainConfig { hidden: vec![16, 8], epochs: 4, batch: 100, ..Default::default() };
+    let dir = temp("resume");
+    let (full, _) = train(&data, &cfg, &dir.join("a"), false, "test", "test", &Quiet).unwrap();
+    let stop = StopAfter(2, Default::default());
+    let e = train(&data, &cfg, &dir.join("b"), false, "test", "test", &stop).err().unwrap();
+    assert!(e.to_string().contains("--resume"), "{e}");
+    let (resumed, report) = train(&data, &cfg, &dir.join("b"), true, "test", "test", &Quiet).unwrap();
+    assert_eq!(report.history.len(), 4);
+    let (mut s1, mut s2) = (full.mlp.scratch(), resumed.mlp.scratch());
+    for row in data.features.chunks_exact(8).take(50) {
+        let (a, b) = (full.predict_features(row, &mut s1), resumed.predict_features(row, &mut s2));
+        assert!((a - b).abs() <= 1e-5 * a.abs().max(1e-3), "{a} vs {b}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
