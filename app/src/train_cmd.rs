@@ -240,7 +240,12 @@ fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<(
     // work of one vertex in the integrator).
     let params = modeler::preset("scene-a").context("scene-a preset")?;
     let grid = modeler::build_grid(&params, 128)?;
-    let medium = engine::Medium::new(std::sync::Arc::new(grid), args.rho, 1.0, engine::PhaseFunction::HenyeyGreenstein { g: 0.85 })?;
+    let medium = engine::Medium::new(
+        std::sync::Arc::new(grid),
+        args.rho,
+        1.0,
+        engine::PhaseFunction::HenyeyGreenstein { g: 0.85 },
+    )?;
     let sun = engine::Sun::new(glam::Vec3::new(0.0, -1.0, 0.0), glam::Vec3::ONE, 0.0)?;
     let mut points = vec![];
     let b = medium.bounds();

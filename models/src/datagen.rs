@@ -134,7 +134,11 @@ fn setting(flag: &'static str, why: impl Into<String>) -> DatagenError {
 /// Parses "MIN..MAX" or a single value.
 pub fn parse_range(flag: &'static str, s: &str) -> Result<[f32; 2], DatagenError> {
     let parse = |t: &str| {
-        t.trim().parse::<f32>().ok().filter(|v| v.is_finite()).ok_or_else(|| setting(flag, format!("{t:?} is not a number")))
+        t.trim()
+            .parse::<f32>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| setting(flag, format!("{t:?} is not a number")))
     };
     let r = match s.split_once("..") {
         Some((a, b)) => [parse(a)?, parse(b)?],
@@ -171,7 +175,11 @@ impl GlobalSpec {
         if self.directions.directions(self.n_dirs).is_none() {
             return Err(setting(
                 "--n-dirs",
-                format!("{} is not offered by the {} set (tetrahedron: 4, 16, 64; fibonacci: 4..=256)", self.n_dirs, self.directions.name()),
+                format!(
+                    "{} is not offered by the {} set (tetrahedron: 4, 16, 64; fibonacci: 4..=256)",
+                    self.n_dirs,
+                    self.directions.name()
+                ),
             ));
         }
         if !(self.max_rel_error > 0.0 && self.max_rel_error < 1.0) {
@@ -274,7 +282,14 @@ pub fn generate_point(spec: &GlobalSpec, fe: &FeatureExtractor, index: u64) -> D
     let g = medium.phase.mean_cosine();
     let mut features = vec![0.0; fe.len()];
     fe.extract_with(medium.albedo, g, OMEGA_L, wo, |d| medium.sigma_t * medium.exit_distance(x, d), &mut features);
-    DataPoint { features, l_i: est.mean, std_error: est.std_error, samples: est.samples, sigma: medium.sigma_t, shape: kind }
+    DataPoint {
+        features,
+        l_i: est.mean,
+        std_error: est.std_error,
+        samples: est.samples,
+        sigma: medium.sigma_t,
+        shape: kind,
+    }
 }
 
 /// Which part of the data set a run makes: chunks c with c mod count == index.
@@ -348,9 +363,12 @@ impl Manifest {
 
     pub fn load(dir: &Path) -> Result<Manifest, DatagenError> {
         let path = dir.join("manifest.json");
-        let text = std::fs::read_to_string(&path).map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
-        let m: Manifest = serde_json::from_str(&text)
-            .map_err(|e| DatagenError::File { path: path.clone(), why: format!("not a Nimbus data-set manifest: {e}") })?;
+        let text = std::fs::read_to_string(&path)
+            .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
+        let m: Manifest = serde_json::from_str(&text).map_err(|e| DatagenError::File {
+            path: path.clone(),
+            why: format!("not a Nimbus data-set manifest: {e}"),
+        })?;
         if m.format != FORMAT || m.format_version != FORMAT_VERSION {
             return Err(DatagenError::File {
                 path,
@@ -422,9 +440,8 @@ pub fn generate(
     let chunks: Vec<u64> = (0..spec.n_chunks()).filter(|&c| shard.owns(c)).collect();
     let chunk_len = |c: u64| (spec.points - c * spec.chunk_size).min(spec.chunk_size);
     let todo: Vec<u64> = chunks.iter().copied().filter(|&c| !chunk_path(dir, c).exists()).collect();
-    let done_points = std::sync::atomic::AtomicU64::new(
-        chunks.iter().filter(|c| !todo.contains(c)).map(|&c| chunk_len(c)).sum(),
-    );
+    let done_points =
+        std::sync::atomic::AtomicU64::new(chunks.iter().filter(|c| !todo.contains(c)).map(|&c| chunk_len(c)).sum());
     progress(done_points.load(Ordering::Relaxed));
     let n_f = spec.n_features();
     let results: Vec<Result<bool, DatagenError>> = todo
@@ -503,7 +520,10 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Manifest, DatagenError> {
         let missing = owner.iter().filter(|o| o.is_none()).count();
         return Err(DatagenError::File {
             path: chunk_path(&dirs[0], c as u64),
-            why: format!("{missing} of {} chunks are missing (first: chunk {c}); finish every shard first", owner.len()),
+            why: format!(
+                "{missing} of {} chunks are missing (first: chunk {c}); finish every shard first",
+                owner.len()
+            ),
         });
     }
     let mut features = Vec::with_capacity(spec.points as usize * n_f);

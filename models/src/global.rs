@@ -88,10 +88,16 @@ impl FeatureLayout {
             out.push(format!("feature names {:?} differ from the code's {:?}", self.names, cur.names));
         }
         if self.angle_convention != cur.angle_convention {
-            out.push(format!("angle convention {:?} differs from the code's {:?}", self.angle_convention, cur.angle_convention));
+            out.push(format!(
+                "angle convention {:?} differs from the code's {:?}",
+                self.angle_convention, cur.angle_convention
+            ));
         }
         if self.optical_depth != cur.optical_depth {
-            out.push(format!("optical depth transform {:?} differs from the code's {:?}", self.optical_depth, cur.optical_depth));
+            out.push(format!(
+                "optical depth transform {:?} differs from the code's {:?}",
+                self.optical_depth, cur.optical_depth
+            ));
         }
         (!out.is_empty()).then(|| out.join("; "))
     }

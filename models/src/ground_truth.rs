@@ -280,8 +280,14 @@ mod tests {
         let m_tests = 2 * queries.len();
         let mut var_ratio = vec![];
         for g in [0.85f32, -0.7] {
-            let m = ConvexMedium::new(Shape::Box, rot * Mat3::from_diagonal(Vec3::new(1.0, 0.7, 0.8)), 4.0, 0.95, PhaseFunction::HenyeyGreenstein { g })
-                .unwrap();
+            let m = ConvexMedium::new(
+                Shape::Box,
+                rot * Mat3::from_diagonal(Vec3::new(1.0, 0.7, 0.8)),
+                4.0,
+                0.95,
+                PhaseFunction::HenyeyGreenstein { g },
+            )
+            .unwrap();
             for (i, &(x, wo)) in queries.iter().enumerate() {
                 let (mut a, mut b) = (Welford::default(), Welford::default());
                 let mut rng = Rng::new(11, i as u64, (g * 100.0) as u64);
@@ -290,7 +296,12 @@ mod tests {
                     b.add(sample_in_scattered_with(&m, Vec3::NEG_Z, x, wo, &mut rng, true) as f64);
                 }
                 let se = (a.std_error().powi(2) + b.std_error().powi(2)).sqrt();
-                assert!((a.mean - b.mean).abs() < z_bound(0.01, m_tests) * se, "g {g}: {} vs {} (se {se})", a.mean, b.mean);
+                assert!(
+                    (a.mean - b.mean).abs() < z_bound(0.01, m_tests) * se,
+                    "g {g}: {} vs {} (se {se})",
+                    a.mean,
+                    b.mean
+                );
                 var_ratio.push(a.variance() / b.variance());
             }
         }

@@ -4,8 +4,8 @@
 pub mod datagen;
 pub mod directions;
 pub mod features;
+pub mod global;
 pub mod ground_truth;
 pub mod npy;
-pub mod global;
 pub mod plot;
 pub mod train;

@@ -79,7 +79,8 @@ pub fn parse_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>), String> {
         2 | 3 if bytes.len() >= 12 => (12, u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize),
         v => return Err(format!("format version {v} is not supported")),
     };
-    let data_start = header_start.checked_add(header_len).filter(|&e| e <= bytes.len()).ok_or("header runs past the end")?;
+    let data_start =
+        header_start.checked_add(header_len).filter(|&e| e <= bytes.len()).ok_or("header runs past the end")?;
     let header = std::str::from_utf8(&bytes[header_start..data_start]).map_err(|_| "header is not text")?;
     let field = |key: &str| -> Result<&str, String> {
         let at = header.find(&format!("'{key}'")).ok_or(format!("header has no '{key}'"))?;

@@ -96,7 +96,8 @@ impl Canvas {
 pub fn loss_plot_png(history: &[EpochRecord]) -> Vec<u8> {
     let mut cv = Canvas { px: vec![255; (W * H * 3) as usize] };
     let (x0, x1, y0, y1) = (LEFT, W as i32 - RIGHT, TOP, H as i32 - BOTTOM);
-    let vals: Vec<f64> = history.iter().flat_map(|h| [h.train_mse, h.test_mse]).filter(|v| *v > 0.0 && v.is_finite()).collect();
+    let vals: Vec<f64> =
+        history.iter().flat_map(|h| [h.train_mse, h.test_mse]).filter(|v| *v > 0.0 && v.is_finite()).collect();
     let (lo, hi) = vals.iter().fold((f64::MAX, f64::MIN), |(l, h), v| (l.min(v.log10()), h.max(v.log10())));
     let (lo, hi) = if vals.is_empty() { (-1.0, 0.0) } else { (lo.floor(), hi.ceil().max(lo.floor() + 1.0)) };
     let epochs = history.len().max(2) as f32;

@@ -339,10 +339,20 @@ struct OptState {
 impl OptState {
     fn new(vars: &[&Var]) -> candle_core::Result<Self> {
         let zeros = |v: &&Var| v.as_tensor().zeros_like();
-        Ok(OptState { step: 0, m: vars.iter().map(zeros).collect::<Result<_, _>>()?, v: vars.iter().map(zeros).collect::<Result<_, _>>()? })
+        Ok(OptState {
+            step: 0,
+            m: vars.iter().map(zeros).collect::<Result<_, _>>()?,
+            v: vars.iter().map(zeros).collect::<Result<_, _>>()?,
+        })
     }
 
-    fn apply(&mut self, opt: Optimizer, lr: f64, vars: &[&Var], grads: &candle_core::backprop::GradStore) -> candle_core::Result<()> {
+    fn apply(
+        &mut self,
+        opt: Optimizer,
+        lr: f64,
+        vars: &[&Var],
+        grads: &candle_core::backprop::GradStore,
+    ) -> candle_core::Result<()> {
         self.step += 1;
         for (k, var) in vars.iter().enumerate() {
             let Some(g) = grads.get(var.as_tensor()) else { continue };
@@ -414,7 +424,8 @@ fn save_tensors(tensors: &HashMap<String, Tensor>, path: &Path) -> Result<(), Tr
 }
 
 fn write_text(path: &Path, text: &str) -> Result<(), TrainError> {
-    write_bytes_atomically(path, text.as_bytes()).map_err(|e| TrainError::File { path: path.to_owned(), why: e.to_string() })
+    write_bytes_atomically(path, text.as_bytes())
+        .map_err(|e| TrainError::File { path: path.to_owned(), why: e.to_string() })
 }
 
 /// Progress callbacks of a training run.
@@ -469,7 +480,9 @@ pub fn train(
         let t = candle_core::safetensors::load(paths.checkpoint.join("state.safetensors"), &dev)?;
         for (k, var) in vars.iter().enumerate() {
             let get = |name: String| {
-                t.get(&name).cloned().ok_or_else(|| TrainError::File { path: paths.checkpoint.clone(), why: format!("{name} missing") })
+                t.get(&name)
+                    .cloned()
+                    .ok_or_else(|| TrainError::File { path: paths.checkpoint.clone(), why: format!("{name} missing") })
             };
             var.set(&get(format!("param.{k}"))?)?;
             opt.m[k] = get(format!("m.{k}"))?;
@@ -526,7 +539,11 @@ pub fn train(
             seconds: t0.elapsed().as_secs_f64(),
         };
         if !record.train_mse.is_finite() {
-            return Err(TrainError::Data(format!("training diverged in epoch {} (loss {}); lower --lr", epoch + 1, record.train_mse)));
+            return Err(TrainError::Data(format!(
+                "training diverged in epoch {} (loss {}); lower --lr",
+                epoch + 1,
+                record.train_mse
+            )));
         }
         observer.epoch(&record);
         history.push(record);
@@ -620,5 +637,6 @@ fn write_history(paths: &TrainPaths, history: &[EpochRecord]) -> Result<(), Trai
     }
     write_text(&paths.csv, &csv)?;
     let png = crate::plot::loss_plot_png(history);
-    write_bytes_atomically(&paths.plot, &png).map_err(|e| TrainError::File { path: paths.plot.clone(), why: e.to_string() })
+    write_bytes_atomically(&paths.plot, &png)
+        .map_err(|e| TrainError::File { path: paths.plot.clone(), why: e.to_string() })
 }

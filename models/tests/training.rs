@@ -44,7 +44,8 @@ fn smooth_data(n: usize, seed: u64) -> (TrainData, impl Fn(&[f32]) -> f32) {
 #[test]
 fn training_recovers_a_known_smooth_function() {
     let (data, _) = smooth_data(6000, 1);
-    let cfg = TrainConfig { hidden: vec![32, 16], epochs: 40, batch: 100, lr: 3e-3, lr_decay: 0.95, ..Default::default() };
+    let cfg =
+        TrainConfig { hidden: vec![32, 16], epochs: 40, batch: 100, lr: 3e-3, lr_decay: 0.95, ..Default::default() };
     let dir = temp("smooth");
     let (_, report) = train(&data, &cfg, &dir.join("m"), false, "test", "test", &Quiet).unwrap();
     // The standardized target has variance 1; a recovered function leaves a few per cent.
@@ -94,13 +95,15 @@ fn a_generated_data_set_trains() {
     models::datagen::generate(&spec, Shard::ALL, &dir.join("data"), "test", &|_| {}, &AtomicBool::new(false)).unwrap();
     let data = TrainData::load(&[dir.join("data")]).unwrap();
     assert_eq!(data.n_features(), 20);
-    let cfg = TrainConfig { hidden: vec![64, 32], epochs: 30, batch: 50, lr: 2e-3, lr_decay: 0.95, ..Default::default() };
+    let cfg =
+        TrainConfig { hidden: vec![64, 32], epochs: 30, batch: 50, lr: 2e-3, lr_decay: 0.95, ..Default::default() };
     let (model, report) = train(&data, &cfg, &dir.join("m"), false, "test", "test", &Quiet).unwrap();
     assert!(report.test_mse < 0.25 * report.test_target_variance, "{report:?}");
     assert_eq!(model.sidecar.features.n_dirs, 16);
     // A data set of another layout is refused by name.
     let other = GlobalSpec { n_dirs: 4, points: 10, chunk_size: 10, ..spec.clone() };
-    models::datagen::generate(&other, Shard::ALL, &dir.join("data4"), "test", &|_| {}, &AtomicBool::new(false)).unwrap();
+    models::datagen::generate(&other, Shard::ALL, &dir.join("data4"), "test", &|_| {}, &AtomicBool::new(false))
+        .unwrap();
     let e = TrainData::load(&[dir.join("data"), dir.join("data4")]).err().unwrap().to_string();
     assert!(e.contains("4 tetrahedron directions") && e.contains("16 tetrahedron"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
