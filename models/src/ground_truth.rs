@@ -112,7 +112,11 @@ pub const LIGHT_LOBE_MIN_G: f32 = 0.25;
 /// The walk itself always continues along the phase-sampled direction (throughput
 /// weights stay 1), so long paths in dense media keep their variance.
 pub fn sample_in_scattered(m: &ConvexMedium, omega_l: Vec3, x: Vec3, wo: Vec3, rng: &mut Rng) -> f32 {
-    sample_in_scattered_with(m, omega_l, x, wo, rng, m.phase.mean_cosine().abs() >= LIGHT_LOBE_MIN_G)
+    // The light-lobe MIS is off by default: it halves the samples per point but doubles
+    // the cost per sample (no net gain measured), and the engine cross-check at 600k
+    // samples per query (tests/tests/ground_truth.rs) showed a 3.2 sigma difference with
+    // it on that is not yet explained. Investigate before switching it back on.
+    sample_in_scattered_with(m, omega_l, x, wo, rng, false)
 }
 
 /// [`sample_in_scattered`] with the light-lobe technique switched on or off.
