@@ -223,15 +223,18 @@ fn stop_on_ctrl_c(control: &Arc<RenderControl>) {
     });
 }
 
-pub(crate) fn progress_bar(len: u64, quiet: bool) -> ProgressBar {
+/// The CLI's progress bar; `unit` names what is counted (spp, points, batches).
+pub(crate) fn progress_bar(len: u64, unit: &str, quiet: bool) -> ProgressBar {
     if quiet {
         return ProgressBar::hidden();
     }
     let bar = ProgressBar::new(len);
     bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} spp  ETA {eta}  {msg}")
-            .expect("valid template")
-            .progress_chars("=> "),
+        ProgressStyle::with_template(&format!(
+            "{{spinner}} [{{elapsed_precise}}] {{bar:40}} {{pos}}/{{len}} {unit}  ETA {{eta}}  {{msg}}"
+        ))
+        .expect("valid template")
+        .progress_chars("=> "),
     );
     bar
 }
@@ -263,7 +266,7 @@ fn render(args: RenderArgs) -> Result<()> {
     let integrator = file.integrator()?;
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
-    let bar = progress_bar(args.spp as u64, args.quiet);
+    let bar = progress_bar(args.spp as u64, "spp", args.quiet);
     let outcome = render_spp(scene.clone(), integrator, args.spp, &control, |done| bar.set_position(done as u64))?;
     bar.finish_and_clear();
     let film = &outcome.film;
@@ -331,7 +334,7 @@ fn bench_render(args: BenchRenderArgs) -> Result<()> {
         let medium =
             engine::Medium::with_majorant_cells(grid.clone(), file.medium.rho, file.medium.albedo, file.phase(), c)?;
         let scene = Arc::new(engine::Scene { medium, ..base.clone() });
-        let bar = progress_bar(args.spp as u64, false);
+        let bar = progress_bar(args.spp as u64, "spp", false);
         let outcome =
             render_spp(scene.clone(), file.integrator()?, args.spp, &control, |d| bar.set_position(d as u64))?;
         bar.finish_and_clear();

@@ -1,9 +1,8 @@
 //! `nimbus datagen global|merge` and `nimbus bench datagen`.
 
-use crate::cli::init_threads;
+use crate::cli::{init_threads, progress_bar};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use indicatif::{ProgressBar, ProgressStyle};
 use models::datagen::{self, GlobalSpec, ShapeKind, Shard, parse_range};
 use models::directions::DirectionSetKind;
 use std::path::PathBuf;
@@ -122,19 +121,6 @@ impl GlobalArgs {
     }
 }
 
-fn points_bar(len: u64, quiet: bool) -> ProgressBar {
-    if quiet {
-        return ProgressBar::hidden();
-    }
-    let bar = ProgressBar::new(len);
-    bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} points  ETA {eta}  {msg}")
-            .expect("valid template")
-            .progress_chars("=> "),
-    );
-    bar
-}
-
 /// Ctrl-C sets the flag: the chunks on disk are kept, the run can be resumed.
 fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
     let flag = Arc::new(AtomicBool::new(false));
@@ -152,10 +138,7 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
             let spec = args.spec()?;
             let shard = Shard::parse(&args.shard)?;
             let threads = init_threads(args.threads)?;
-            let owned: u64 = (0..spec.n_chunks())
-                .filter(|&c| shard.owns(c))
-                .map(|c| (spec.points - c * spec.chunk_size).min(spec.chunk_size))
-                .sum();
+            let owned = spec.shard_points(shard);
             eprintln!(
                 "data set: {} points ({} in shard {}/{}), {} threads, into {}",
                 spec.points,
@@ -165,7 +148,7 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
                 threads,
                 args.out.display()
             );
-            let bar = points_bar(owned, args.quiet);
+            let bar = progress_bar(owned, "points", args.quiet);
             let cancel = cancel_on_ctrl_c();
             let t = std::time::Instant::now();
             let m = datagen::generate(&spec, shard, &args.out, &code_version(), &|n| bar.set_position(n), &cancel)?;

@@ -75,7 +75,7 @@ pub fn sheet(args: SheetArgs) -> Result<()> {
     let (tw, th) = (args.tile, args.tile);
     let mut sheet = image::RgbaImage::new(cols * tw, rows * th);
     let control = RenderControl::new();
-    let bar = progress_bar(names.len() as u64, false);
+    let bar = progress_bar(names.len() as u64, "clouds", false);
     for (i, name) in names.iter().enumerate() {
         let mut file = SceneFile::from_toml_str(&format!("[grid]\npreset = \"{name}\"\n"), "sheet")?;
         file.grid.resolution = args.res;

@@ -4,38 +4,17 @@
 
 use anyhow::{Context, Result};
 use engine::{Buffer, DensityGrid, Film};
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-/// A temporary path in the same directory as `path` (so the rename is atomic).
-fn temp_path(path: &Path) -> PathBuf {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
-    path.with_file_name(format!(".{name}.{}.tmp", std::process::id()))
-}
-
-/// Runs `write` on a temporary file, then renames it to `path`.
+/// Runs `write` on a temporary file, then renames it to `path`
+/// ([`models::npy::write_atomically`]), naming the file in the error.
 pub fn write_atomically(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create directory {}", dir.display()))?;
-    }
-    let tmp = temp_path(path);
-    let result = write(&tmp).and_then(|_| {
-        std::fs::rename(&tmp, path).with_context(|| format!("cannot move {} to {}", tmp.display(), path.display()))
-    });
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result.with_context(|| format!("cannot write {}", path.display()))
+    models::npy::write_atomically(path, write).with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Writes bytes atomically.
 pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    write_atomically(path, |tmp| {
-        let mut f = std::fs::File::create(tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        Ok(())
-    })
+    models::npy::write_bytes_atomically(path, bytes).with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// One named RGB layer of an EXR file.

@@ -1,11 +1,11 @@
 //! `nimbus train global` and `nimbus bench predict`.
 
-use crate::cli::init_threads;
+use crate::cli::{init_threads, progress_bar};
 use crate::datagen_cmd::code_version;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use engine::{InScatterPredictor, Rng};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use models::global::{Activation, GlobalModel};
 use models::train::{EpochRecord, Optimizer, TrainConfig, TrainData, TrainObserver};
 use std::path::PathBuf;
@@ -126,12 +126,7 @@ pub fn train(cmd: TrainCommand) -> Result<()> {
         args.data.len(),
         t.elapsed().as_secs_f64()
     );
-    let bar = if args.quiet { ProgressBar::hidden() } else { ProgressBar::new(1) };
-    bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} batches  {msg}  ETA {eta}")
-            .expect("valid template")
-            .progress_chars("=> "),
-    );
+    let bar = progress_bar(1, "batches", args.quiet);
     let cancel = Arc::new(AtomicBool::new(false));
     let c = cancel.clone();
     let _ = ctrlc::set_handler(move || {

@@ -216,9 +216,17 @@ impl GlobalSpec {
 
     /// The feature names, in order.
     pub fn feature_names(&self) -> Vec<String> {
-        let mut names: Vec<String> = ["albedo", "g", "theta", "phi"].iter().map(|s| s.to_string()).collect();
-        names.extend((1..=self.n_dirs).map(|i| format!("tau_hat_{i}")));
-        names
+        crate::global::FeatureLayout::current(self.directions, self.n_dirs).names
+    }
+
+    /// Points in chunk `c` (the last chunk may be short).
+    pub fn chunk_len(&self, c: u64) -> u64 {
+        (self.points - c * self.chunk_size).min(self.chunk_size)
+    }
+
+    /// Points that `shard` makes.
+    pub fn shard_points(&self, shard: Shard) -> u64 {
+        (0..self.n_chunks()).filter(|&c| shard.owns(c)).map(|c| self.chunk_len(c)).sum()
     }
 }
 
@@ -438,17 +446,17 @@ pub fn generate(
     };
     let fe = FeatureExtractor::with_set(spec.directions, spec.n_dirs).expect("validated");
     let chunks: Vec<u64> = (0..spec.n_chunks()).filter(|&c| shard.owns(c)).collect();
-    let chunk_len = |c: u64| (spec.points - c * spec.chunk_size).min(spec.chunk_size);
     let todo: Vec<u64> = chunks.iter().copied().filter(|&c| !chunk_path(dir, c).exists()).collect();
-    let done_points =
-        std::sync::atomic::AtomicU64::new(chunks.iter().filter(|c| !todo.contains(c)).map(|&c| chunk_len(c)).sum());
+    let done_points = std::sync::atomic::AtomicU64::new(
+        spec.shard_points(shard) - todo.iter().map(|&c| spec.chunk_len(c)).sum::<u64>(),
+    );
     progress(done_points.load(Ordering::Relaxed));
     let n_f = spec.n_features();
     let results: Vec<Result<bool, DatagenError>> = todo
         .par_iter()
         .map(|&c| {
             let first = c * spec.chunk_size;
-            let points: Option<Vec<DataPoint>> = (first..first + chunk_len(c))
+            let points: Option<Vec<DataPoint>> = (first..first + spec.chunk_len(c))
                 .into_par_iter()
                 .map(|i| {
                     if cancel.load(Ordering::Relaxed) {
@@ -482,7 +490,7 @@ pub fn generate(
     if shard == Shard::ALL {
         return merge(&[dir.to_owned()], dir);
     }
-    manifest.counts.points = chunks.iter().map(|&c| chunk_len(c)).sum();
+    manifest.counts.points = spec.shard_points(shard);
     manifest.save(dir)?;
     Ok(manifest)
 }
@@ -532,7 +540,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Manifest, DatagenError> {
     for (c, k) in owner.iter().enumerate() {
         let path = chunk_path(&dirs[k.unwrap()], c as u64);
         let (shape, data) = npy::read_f32(&path)?;
-        let expect = (spec.points - c as u64 * spec.chunk_size).min(spec.chunk_size) as usize;
+        let expect = spec.chunk_len(c as u64) as usize;
         if shape != [expect, n_f + 5] {
             return Err(DatagenError::File { path, why: format!("shape {shape:?}, expected [{expect}, {}]", n_f + 5) });
         }

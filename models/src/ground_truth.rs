@@ -94,15 +94,12 @@ impl ConvexMedium {
     }
 }
 
-/// Below this |g| the light-lobe technique is skipped: with a nearly flat phase function
-/// it only doubles the work of a vertex without reducing the variance.
-pub const LIGHT_LOBE_MIN_G: f32 = 0.25;
-
 /// One sample of L_i(x -> wo) for a light of unit radiance travelling along `omega_l`:
 /// NEE at x (single scattering), then a random walk with exact free flights, NEE at
 /// every vertex and Russian roulette on throughput.
 ///
-/// Variance reduction for peaked phase functions (|g| >= [`LIGHT_LOBE_MIN_G`]): the
+/// [`sample_in_scattered_with`] can add a light-lobe technique for peaked phase
+/// functions (off by default, see the body): the
 /// NEE at vertex j+1 carries the factor p(-w, l) of the direction w chosen at vertex
 /// j, which is huge when w points at the light (HG at g = 0.85 peaks at 6.5 against a
 /// mean of 1/(4 pi)). So each vertex also samples a second direction from that lobe,

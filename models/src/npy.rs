@@ -21,23 +21,31 @@ fn temp_path(path: &Path) -> PathBuf {
     path.with_file_name(format!(".{name}.{}.{thread}.tmp", std::process::id()))
 }
 
-/// Writes `bytes` to a temporary file beside `path`, syncs it and renames it over
-/// `path`: a crash or Ctrl-C never leaves half a file.
-pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+/// Runs `write` on a temporary path beside `path`, then renames it over `path`: a crash
+/// or Ctrl-C never leaves half a file, and the old file survives a failed write. Every
+/// file Nimbus writes goes through here.
+pub fn write_atomically<E: From<std::io::Error>>(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), E>,
+) -> Result<(), E> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
     }
     let tmp = temp_path(path);
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
+    let result = write(&tmp).and_then(|_| std::fs::rename(&tmp, path).map_err(E::from));
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
     result
+}
+
+/// Writes `bytes` atomically (synced before the rename).
+pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    write_atomically(path, |tmp| {
+        let mut f = std::fs::File::create(tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()
+    })
 }
 
 /// The bytes of a float32 `.npy` file of the given shape.

@@ -70,6 +70,12 @@ pub enum TrainError {
     Cancelled(usize),
 }
 
+impl From<std::io::Error> for TrainError {
+    fn from(e: std::io::Error) -> Self {
+        TrainError::Data(e.to_string())
+    }
+}
+
 impl TrainConfig {
     pub fn validate(&self) -> Result<(), TrainError> {
         let bad = |flag, why: &str| Err(TrainError::Setting { flag, why: why.into() });
@@ -414,13 +420,8 @@ struct CheckpointState {
 }
 
 fn save_tensors(tensors: &HashMap<String, Tensor>, path: &Path) -> Result<(), TrainError> {
-    // candle writes the file; we write it beside the target and rename (atomic).
-    let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-    if let Some(d) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(d).map_err(|e| TrainError::File { path: d.to_owned(), why: e.to_string() })?;
-    }
-    candle_core::safetensors::save(tensors, &tmp)?;
-    std::fs::rename(&tmp, path).map_err(|e| TrainError::File { path: path.to_owned(), why: e.to_string() })
+    // candle writes the file, to a temporary path that is then renamed (atomic).
+    crate::npy::write_atomically(path, |tmp| candle_core::safetensors::save(tensors, tmp).map_err(TrainError::from))
 }
 
 fn write_text(path: &Path, text: &str) -> Result<(), TrainError> {
