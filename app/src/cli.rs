@@ -37,6 +37,9 @@ pub enum Command {
         #[command(subcommand)]
         which: crate::train_cmd::TrainCommand,
     },
+    /// The thesis's evaluation of the global model: bias, TTUV and speedup against path
+    /// tracing per scene, lighting, density and k; tables, plots and image sheets.
+    Eval(crate::eval_cmd::EvalArgs),
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
@@ -78,6 +81,19 @@ pub struct RenderArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Prediction mode at bounce K: vertices 1 .. K-1 path traced, the learned model
+    /// predicts the rest at vertex K (overrides the scene's render.mode and k).
+    #[arg(long, value_name = "K")]
+    pub predict: Option<u32>,
+    /// Prediction probability p in (0, 1] (Russian roulette on the prediction).
+    #[arg(long)]
+    pub p: Option<f32>,
+    /// Choose p by minimizing TTUV from 8 pilot passes (see `progressive::auto_p`).
+    #[arg(long)]
+    pub auto_p: bool,
+    /// The global model (.safetensors + .json sidecar); default: the shipped model.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -197,6 +213,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Some(Command::Datagen { which }) => crate::datagen_cmd::datagen(which),
         Some(Command::Bench { which: BenchCommand::Predict(args) }) => crate::train_cmd::bench_predict(args),
         Some(Command::Train { which }) => crate::train_cmd::train(which),
+        Some(Command::Eval(args)) => crate::eval_cmd::eval(&args).map(|_| ()),
     }
 }
 
@@ -214,7 +231,7 @@ pub(crate) fn init_threads(threads: Option<usize>) -> Result<usize> {
     Ok(rayon::current_num_threads())
 }
 
-fn stop_on_ctrl_c(control: &Arc<RenderControl>) {
+pub(crate) fn stop_on_ctrl_c(control: &Arc<RenderControl>) {
     let c = control.clone();
     // If a handler is already installed (tests), keep going without one.
     let _ = ctrlc::set_handler(move || {
@@ -262,10 +279,39 @@ fn render(args: RenderArgs) -> Result<()> {
         (file.camera.width, file.camera.height) = parse_size(size)?;
     }
     file.validate()?;
+    if let Some(k) = args.predict {
+        file.k = k;
+        file.render.mode = "predict".into();
+    }
+    if let Some(p) = args.p {
+        file.render.p = p;
+    }
+    if let Some(m) = &args.model {
+        // Relative to where nimbus runs, like every other path on the command line.
+        file.render.model = Some(std::path::absolute(m)?.display().to_string());
+    }
+    file.validate()?;
     let scene = Arc::new(file.build_scene(None)?);
-    let integrator = file.integrator()?;
+    let setup = file.integrator(&scene, models::depth_field::DEFAULT_MAX_NODES)?;
+    if let Some(w) = &setup.warning {
+        eprintln!("warning: {w}");
+    }
+    let mut integrator = setup.integrator;
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
+    if let (true, Some(pred)) = (args.auto_p, integrator.predictor().cloned()) {
+        let a = crate::progressive::auto_p(scene.clone(), *integrator.settings(), pred.clone(), 8, &control)?;
+        eprintln!(
+            "automatic p = {:.3} (V1 {:.3e}, B {:.3e}, c0 {:.3} s, c1 {:.3} s per pass)",
+            a.p, a.v1, a.b, a.c0, a.c1
+        );
+        let settings = engine::RenderSettings { mode: engine::Mode::Predict { p: a.p }, ..*integrator.settings() };
+        integrator = engine::Integrator::new(settings, Some(pred))?;
+    }
+    let mode = match integrator.settings().mode {
+        engine::Mode::Reference => "reference".to_string(),
+        engine::Mode::Predict { p } => format!("predict (k {}, p {p})", integrator.settings().k),
+    };
     let bar = progress_bar(args.spp as u64, "spp", args.quiet);
     let outcome = render_spp(scene.clone(), integrator, args.spp, &control, |done| bar.set_position(done as u64))?;
     bar.finish_and_clear();
@@ -286,6 +332,7 @@ fn render(args: RenderArgs) -> Result<()> {
         "threads": threads,
         "stopped_early": outcome.stopped,
         "mean_full": film.average(Buffer::Full),
+        "mode": mode,
         "out": args.out,
     });
     println!("{summary}");
@@ -336,7 +383,7 @@ fn bench_render(args: BenchRenderArgs) -> Result<()> {
         let scene = Arc::new(engine::Scene { medium, ..base.clone() });
         let bar = progress_bar(args.spp as u64, "spp", false);
         let outcome =
-            render_spp(scene.clone(), file.integrator()?, args.spp, &control, |d| bar.set_position(d as u64))?;
+            render_spp(scene.clone(), file.integrator_with(None)?, args.spp, &control, |d| bar.set_position(d as u64))?;
         bar.finish_and_clear();
         if outcome.stopped {
             bail!("stopped");

@@ -4,6 +4,7 @@
 pub mod cli;
 pub mod cloud;
 pub mod datagen_cmd;
+pub mod eval_cmd;
 #[cfg(feature = "gui")]
 pub mod gui;
 pub mod mitsuba;

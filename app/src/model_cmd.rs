@@ -86,7 +86,7 @@ pub fn sheet(args: SheetArgs) -> Result<()> {
         (file.camera.width, file.camera.height) = (tw, th);
         file.seed = i as u64;
         let scene = Arc::new(file.build_scene(None)?);
-        let out = render_spp(scene, file.integrator()?, args.spp, &control, |_| {})?;
+        let out = render_spp(scene, file.integrator_with(None)?, args.spp, &control, |_| {})?;
         let rgba = ToneMap::Filmic.to_rgba8(&out.film.mean(Buffer::Full), 0.5);
         let tile = image::RgbaImage::from_raw(tw, th, rgba).context("tile size")?;
         image::imageops::overlay(&mut sheet, &tile, ((i as u32 % cols) * tw) as i64, ((i as u32 / cols) * th) as i64);

@@ -22,10 +22,13 @@
 //! ```
 
 use crate::cloud::Builtin;
-use engine::{Camera, DensityGrid, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene, Sky, Sun};
+use engine::{
+    Camera, DensityGrid, InScatterPredictor, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene, Sky, Sun,
+};
 use glam::Vec3;
+use models::global::{BoundGlobalModel, GlobalModel, ModelError};
 use serde::{Deserialize, Serialize};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 #[derive(Debug, thiserror::Error)]
@@ -206,11 +209,15 @@ pub struct RenderDesc {
     pub mode: String,
     /// Prediction probability for mode = "predict", (0, 1]. Default 0.25.
     pub p: f32,
+    /// A global model (.safetensors with its .json sidecar) for mode = "predict",
+    /// relative to the scene file. Default: the shipped model, compiled into nimbus.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
 }
 
 impl Default for RenderDesc {
     fn default() -> Self {
-        RenderDesc { mode: "reference".into(), p: 0.25 }
+        RenderDesc { mode: "reference".into(), p: 0.25, model: None }
     }
 }
 
@@ -466,10 +473,61 @@ impl SceneFile {
         }
     }
 
-    pub fn integrator(&self) -> Result<Integrator, SceneError> {
-        // No trained model ships yet: prediction mode reports that clearly.
-        Integrator::new(self.settings(), None).map_err(|e| SceneError::Invalid(format!("render: {e}")))
+    /// The integrator of the reference mode, or of prediction mode with a given
+    /// predictor.
+    pub fn integrator_with(&self, predictor: Option<Arc<dyn InScatterPredictor>>) -> Result<Integrator, SceneError> {
+        Integrator::new(self.settings(), predictor).map_err(|e| SceneError::Invalid(format!("render: {e}")))
     }
+
+    /// Where `render.model` points (resolved against the scene file), if set.
+    pub fn model_path(&self) -> Option<PathBuf> {
+        let m = self.render.model.as_ref()?;
+        Some(match &self.base_dir {
+            Some(dir) => dir.join(m),
+            None => PathBuf::from(m),
+        })
+    }
+
+    /// The global model of prediction mode: `render.model`, else the shipped one.
+    pub fn load_model(&self) -> Result<Arc<GlobalModel>, ModelError> {
+        match self.model_path() {
+            Some(path) => GlobalModel::load(&path).map(Arc::new),
+            None => GlobalModel::shipped(),
+        }
+    }
+
+    /// The integrator for the built `scene`. In prediction mode the model is loaded
+    /// and bound to the scene's cloud and sun (its depth field has at most
+    /// `max_nodes` nodes per axis). A model that cannot be loaded does not stop the
+    /// render: it falls back to path tracing and returns a warning naming the file
+    /// and the problem.
+    pub fn integrator(&self, scene: &Scene, max_nodes: u32) -> Result<IntegratorSetup, SceneError> {
+        if self.render.mode != "predict" {
+            return Ok(IntegratorSetup { integrator: self.integrator_with(None)?, warning: None });
+        }
+        let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("prediction mode needs a sun".into()))?;
+        match self.load_model() {
+            Ok(model) => {
+                let bound = BoundGlobalModel::new(model, &scene.medium, sun, max_nodes);
+                Ok(IntegratorSetup { integrator: self.integrator_with(Some(Arc::new(bound)))?, warning: None })
+            }
+            Err(e) => {
+                let mut reference = self.clone();
+                reference.render.mode = "reference".into();
+                Ok(IntegratorSetup {
+                    integrator: reference.integrator_with(None)?,
+                    warning: Some(format!("cannot use the model ({e}); rendering by path tracing instead")),
+                })
+            }
+        }
+    }
+}
+
+/// An integrator and, if prediction mode fell back to path tracing, why.
+#[derive(Clone, Debug)]
+pub struct IntegratorSetup {
+    pub integrator: Integrator,
+    pub warning: Option<String>,
 }
 
 #[cfg(test)]
@@ -538,9 +596,34 @@ mod tests {
     }
 
     #[test]
-    fn predict_mode_without_model_is_a_clear_error() {
+    fn predict_mode_loads_the_shipped_model() {
         let s = SceneFile::from_toml_str(&format!("{MINIMAL}[render]\nmode = \"predict\"\n"), "t").unwrap();
-        let e = s.integrator().unwrap_err().to_string();
+        let scene = s.build_scene(None).unwrap();
+        let setup = s.integrator(&scene, 8).unwrap();
+        assert!(setup.warning.is_none(), "{:?}", setup.warning);
+        assert!(matches!(setup.integrator.settings().mode, Mode::Predict { .. }));
+        // Without a predictor the engine refuses prediction mode, naming what is missing.
+        let e = s.integrator_with(None).unwrap_err().to_string();
         assert!(e.contains("needs a predictor"), "{e}");
+    }
+
+    #[test]
+    fn missing_or_corrupt_model_falls_back_to_path_tracing() {
+        let dir = std::env::temp_dir().join(format!("nimbus-scene-model-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("broken.safetensors"), b"not a model").unwrap();
+        std::fs::copy(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/global.json"), dir.join("broken.json"))
+            .unwrap();
+        for (file, why) in [("nowhere.safetensors", "nowhere.json"), ("broken.safetensors", "safetensors")] {
+            let text = format!("{MINIMAL}[render]\nmode = \"predict\"\nmodel = \"{file}\"\n");
+            let mut s = SceneFile::from_toml_str(&text, "t").unwrap();
+            s.base_dir = Some(dir.clone());
+            let scene = s.build_scene(None).unwrap();
+            let setup = s.integrator(&scene, 8).unwrap();
+            let w = setup.warning.expect("a warning");
+            assert!(w.contains(why) && w.contains("path tracing"), "{w}");
+            assert_eq!(setup.integrator.settings().mode, Mode::Reference);
+        }
+        std::fs::remove_dir_all(&dir).ok();
     }
 }

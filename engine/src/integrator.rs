@@ -121,6 +121,10 @@ impl Integrator {
         &self.settings
     }
 
+    pub fn predictor(&self) -> Option<&Arc<dyn InScatterPredictor>> {
+        self.predictor.as_ref()
+    }
+
     /// Checks what the scene must provide for this integrator.
     pub fn check_scene(&self, scene: &Scene) -> Result<(), IntegratorError> {
         if matches!(self.settings.mode, Mode::Predict { .. }) && scene.sun.is_none() {

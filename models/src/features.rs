@@ -33,6 +33,11 @@ impl FeatureExtractor {
         Some(FeatureExtractor { directions: kind.directions(n_d)? })
     }
 
+    /// The directions in the light frame (d_1 = +z).
+    pub fn directions(&self) -> &[Vec3] {
+        &self.directions
+    }
+
     pub fn n_directions(&self) -> usize {
         self.directions.len()
     }

@@ -1,6 +1,7 @@
-//! The training curve as a PNG (like the thesis's figure 5.6): train and test mean
-//! squared error per epoch on a log scale, drawn directly into pixels with a tiny
-//! built-in font, so no font files or plotting stack are needed.
+//! Line plots as PNG, drawn directly into pixels with a tiny built-in font, so no font
+//! files or plotting stack are needed: the training curve (train and test MSE per
+//! epoch, like the thesis's figure 5.6) and the evaluation's bias and speedup against
+//! k (figure 5.8).
 
 use crate::train::EpochRecord;
 
@@ -12,6 +13,19 @@ const TOP: i32 = 30;
 const BOTTOM: i32 = 50;
 pub const TRAIN_COLOUR: [u8; 3] = [31, 119, 180];
 pub const TEST_COLOUR: [u8; 3] = [214, 39, 40];
+/// Colours of further series (matplotlib's tab10).
+pub const PALETTE: [[u8; 3]; 10] = [
+    [31, 119, 180],
+    [255, 127, 14],
+    [44, 160, 44],
+    [214, 39, 40],
+    [148, 103, 189],
+    [140, 86, 75],
+    [227, 119, 194],
+    [127, 127, 127],
+    [188, 189, 34],
+    [23, 190, 207],
+];
 
 /// 3x5 glyphs, rows top to bottom, 3 bits each (MSB left).
 fn glyph(c: char) -> [u8; 5] {
@@ -46,18 +60,51 @@ fn glyph(c: char) -> [u8; 5] {
         'g' => [0, 7, 7, 1, 7],
         '(' => [1, 2, 2, 2, 1],
         ')' => [4, 2, 2, 2, 4],
+        'b' => [4, 4, 7, 5, 7],
+        'd' => [1, 1, 7, 5, 7],
+        'f' => [3, 2, 7, 2, 2],
+        'k' => [4, 5, 6, 6, 5],
+        'm' => [0, 7, 7, 5, 5],
+        'u' => [0, 5, 5, 5, 7],
+        'v' => [0, 5, 5, 5, 2],
+        'w' => [0, 5, 5, 7, 7],
+        'x' => [0, 5, 2, 2, 5],
+        'y' => [0, 5, 7, 1, 7],
+        'z' => [0, 7, 1, 2, 7],
+        'j' => [1, 0, 1, 1, 6],
+        'q' => [0, 7, 5, 7, 1],
+        'A' => [2, 5, 7, 5, 5],
+        'B' => [6, 5, 6, 5, 6],
+        'C' => [7, 4, 4, 4, 7],
+        'T' => [7, 2, 2, 2, 2],
+        'U' => [5, 5, 5, 5, 7],
+        'V' => [5, 5, 5, 5, 2],
+        '%' => [5, 1, 2, 4, 5],
+        '/' => [1, 1, 2, 4, 4],
+        '=' => [0, 7, 0, 7, 0],
+        ',' => [0, 0, 0, 2, 4],
+        ':' => [0, 2, 0, 2, 0],
+        '_' => [0, 0, 0, 0, 7],
+        '^' => [2, 5, 0, 0, 0],
+        '+' => [0, 2, 7, 2, 0],
         _ => [0; 5],
     }
 }
 
 struct Canvas {
+    w: u32,
+    h: u32,
     px: Vec<u8>,
 }
 
 impl Canvas {
+    fn new(w: u32, h: u32) -> Self {
+        Canvas { w, h, px: vec![255; (w * h * 3) as usize] }
+    }
+
     fn set(&mut self, x: i32, y: i32, c: [u8; 3]) {
-        if x >= 0 && y >= 0 && (x as u32) < W && (y as u32) < H {
-            let i = 3 * (y as usize * W as usize + x as usize);
+        if x >= 0 && y >= 0 && (x as u32) < self.w && (y as u32) < self.h {
+            let i = 3 * (y as usize * self.w as usize + x as usize);
             self.px[i..i + 3].copy_from_slice(&c);
         }
     }
@@ -90,22 +137,44 @@ impl Canvas {
             }
         }
     }
+
+    fn png(self) -> Vec<u8> {
+        let img = image::RgbImage::from_raw(self.w, self.h, self.px).expect("sized");
+        let mut out = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut out, image::ImageFormat::Png).expect("PNG encodes in memory");
+        out.into_inner()
+    }
 }
 
-/// PNG bytes of the loss curves (log10 MSE against epoch).
-pub fn loss_plot_png(history: &[EpochRecord]) -> Vec<u8> {
-    let mut cv = Canvas { px: vec![255; (W * H * 3) as usize] };
-    let (x0, x1, y0, y1) = (LEFT, W as i32 - RIGHT, TOP, H as i32 - BOTTOM);
-    let vals: Vec<f64> =
-        history.iter().flat_map(|h| [h.train_mse, h.test_mse]).filter(|v| *v > 0.0 && v.is_finite()).collect();
-    let (lo, hi) = vals.iter().fold((f64::MAX, f64::MIN), |(l, h), v| (l.min(v.log10()), h.max(v.log10())));
-    let (lo, hi) = if vals.is_empty() { (-1.0, 0.0) } else { (lo.floor(), hi.ceil().max(lo.floor() + 1.0)) };
-    let epochs = history.len().max(2) as f32;
-    let px = |e: f32| x0 as f32 + (e - 1.0) / (epochs - 1.0) * (x1 - x0) as f32;
+/// One line of a plot.
+#[derive(Clone, Debug)]
+pub struct Series {
+    pub label: String,
+    pub colour: [u8; 3],
+    pub points: Vec<(f64, f64)>,
+}
+
+/// PNG bytes of a line plot: x linear with a tick at every x the series use (or ten
+/// when there are many), y on a log scale with decade grid lines. Points with y <= 0
+/// are left out. Labels use a tiny built-in font (lowercase, digits, a few capitals).
+pub fn line_plot_png(title: &str, x_label: &str, y_label: &str, series: &[Series]) -> Vec<u8> {
+    let legend_rows = series.len().div_ceil(3) as i32;
+    let top = TOP + 14 * legend_rows;
+    let h = H + (14 * legend_rows) as u32;
+    let mut cv = Canvas::new(W, h);
+    let (x0, x1, y0, y1) = (LEFT, W as i32 - RIGHT, top, h as i32 - BOTTOM);
+    let ys: Vec<f64> =
+        series.iter().flat_map(|s| s.points.iter().map(|p| p.1)).filter(|v| *v > 0.0 && v.is_finite()).collect();
+    let (lo, hi) = ys.iter().fold((f64::MAX, f64::MIN), |(l, h), v| (l.min(v.log10()), h.max(v.log10())));
+    let (lo, hi) = if ys.is_empty() { (-1.0, 0.0) } else { (lo.floor(), hi.ceil().max(lo.floor() + 1.0)) };
+    let mut xs: Vec<f64> = series.iter().flat_map(|s| s.points.iter().map(|p| p.0)).collect();
+    xs.sort_by(f64::total_cmp);
+    xs.dedup();
+    let (xmin, xmax) = (xs.first().copied().unwrap_or(0.0), xs.last().copied().unwrap_or(1.0));
+    let xspan = if xmax > xmin { xmax - xmin } else { 1.0 };
+    let px = |x: f64| x0 as f32 + ((x - xmin) / xspan) as f32 * (x1 - x0) as f32;
     let py = |v: f64| y1 as f32 - ((v.max(1e-30).log10() - lo) / (hi - lo)) as f32 * (y1 - y0) as f32;
-    let grey = [200, 200, 200];
-    let black = [0, 0, 0];
-    // Decade grid lines and labels.
+    let (grey, black) = ([200, 200, 200], [0, 0, 0]);
     let mut d = lo;
     while d <= hi + 1e-9 {
         let y = py(10f64.powf(d));
@@ -113,34 +182,49 @@ pub fn loss_plot_png(history: &[EpochRecord]) -> Vec<u8> {
         cv.text(8, y as i32 - 5, &format!("1e{}", d as i32), 2, black);
         d += 1.0;
     }
-    let step = (history.len() / 10).max(1);
-    for e in (1..=history.len()).step_by(step) {
-        let x = px(e as f32);
+    let ticks: Vec<f64> = if xs.len() <= 12 {
+        xs.clone()
+    } else {
+        let step = (xs.len() / 10).max(1);
+        xs.iter().step_by(step).copied().collect()
+    };
+    for t in ticks {
+        let x = px(t);
         cv.line((x, y0 as f32), (x, y1 as f32), grey, 1);
-        cv.text(x as i32 - 4, y1 + 8, &e.to_string(), 2, black);
+        let label = if t.fract() == 0.0 { format!("{}", t as i64) } else { format!("{t:.2}") };
+        cv.text(x as i32 - 4, y1 + 8, &label, 2, black);
     }
     cv.line((x0 as f32, y0 as f32), (x0 as f32, y1 as f32), black, 1);
     cv.line((x0 as f32, y1 as f32), (x1 as f32, y1 as f32), black, 1);
-    cv.text(W as i32 / 2 - 20, H as i32 - 18, "epoch", 2, black);
-    cv.text(LEFT, 8, "MSE", 2, black);
-    cv.line((W as f32 - 200.0, 14.0), (W as f32 - 180.0, 14.0), TRAIN_COLOUR, 3);
-    cv.text(W as i32 - 175, 9, "train", 2, TRAIN_COLOUR);
-    cv.line((W as f32 - 110.0, 14.0), (W as f32 - 90.0, 14.0), TEST_COLOUR, 3);
-    cv.text(W as i32 - 85, 9, "test", 2, TEST_COLOUR);
-    for (colour, pick) in [(TRAIN_COLOUR, 0), (TEST_COLOUR, 1)] {
-        let pts: Vec<(f32, f32)> = history
-            .iter()
-            .map(|h| (px(h.epoch as f32), py(if pick == 0 { h.train_mse } else { h.test_mse })))
-            .collect();
+    cv.text(W as i32 / 2 - 4 * x_label.len() as i32, h as i32 - 18, x_label, 2, black);
+    cv.text(8, 8, &format!("{y_label}   {title}"), 2, black);
+    for (i, s) in series.iter().enumerate() {
+        let (lx, ly) = (LEFT + (i as i32 % 3) * 190, 26 + (i as i32 / 3) * 14);
+        cv.line((lx as f32, ly as f32 + 5.0), (lx as f32 + 20.0, ly as f32 + 5.0), s.colour, 3);
+        cv.text(lx + 25, ly, &s.label, 2, s.colour);
+        let pts: Vec<(f32, f32)> =
+            s.points.iter().filter(|p| p.1 > 0.0 && p.1.is_finite()).map(|p| (px(p.0), py(p.1))).collect();
         for w in pts.windows(2) {
-            cv.line(w[0], w[1], colour, 3);
+            cv.line(w[0], w[1], s.colour, 3);
         }
         for p in &pts {
-            cv.line((p.0 - 2.0, p.1), (p.0 + 2.0, p.1), colour, 4);
+            cv.line((p.0 - 2.0, p.1), (p.0 + 2.0, p.1), s.colour, 4);
         }
     }
-    let img = image::RgbImage::from_raw(W, H, cv.px).expect("sized");
-    let mut out = std::io::Cursor::new(Vec::new());
-    img.write_to(&mut out, image::ImageFormat::Png).expect("PNG encodes in memory");
-    out.into_inner()
+    cv.png()
+}
+
+/// PNG bytes of the loss curves (log10 MSE against epoch), like the thesis's figure 5.6.
+pub fn loss_plot_png(history: &[EpochRecord]) -> Vec<u8> {
+    let curve = |label: &str, colour, pick: fn(&EpochRecord) -> f64| Series {
+        label: label.into(),
+        colour,
+        points: history.iter().map(|h| (h.epoch as f64, pick(h))).collect(),
+    };
+    line_plot_png(
+        "",
+        "epoch",
+        "MSE",
+        &[curve("train", TRAIN_COLOUR, |h| h.train_mse), curve("test", TEST_COLOUR, |h| h.test_mse)],
+    )
 }

@@ -465,10 +465,17 @@ impl NimbusApp {
             ui.heading("Render");
             ui.horizontal(|ui| {
                 ui.radio_value(&mut self.scene.render.mode, "reference".to_string(), "path tracing");
-                ui.add_enabled(false, egui::RadioButton::new(false, "prediction at bounce k"))
-                    .on_disabled_hover_text("needs a trained model: none ships yet (issues 6 and 7)");
+                ui.radio_value(&mut self.scene.render.mode, "predict".to_string(), "prediction at bounce k")
+                    .on_hover_text("vertices 1 .. k-1 path traced, the learned model predicts the rest at vertex k");
             });
             ui.add(egui::Slider::new(&mut self.scene.k, 1..=8).text("k (first high order)"));
+            if self.scene.render.mode == "predict" {
+                ui.add(egui::Slider::new(&mut self.scene.render.p, 0.05..=1.0).text("prediction probability p"));
+                ui.label(match &self.scene.render.model {
+                    Some(m) => format!("model: {m}"),
+                    None => "model: shipped global model".to_string(),
+                });
+            }
             ui.horizontal(|ui| {
                 ui.label("show");
                 for b in Buffer::ALL {

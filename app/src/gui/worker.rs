@@ -123,12 +123,15 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             };
             let built = grid.map_err(|e| e.to_string()).and_then(|g| {
                 let s = scene.build_scene(Some(g)).map_err(|e| e.to_string())?;
-                let integ = scene.integrator().map_err(|e| e.to_string())?;
-                Renderer::new(Arc::new(s), integ).map_err(|e| e.to_string())
+                // A coarse depth field while a slider moves: built in a fraction of the time.
+                let nodes = if coarse { COARSE_RESOLUTION / 2 } else { models::depth_field::DEFAULT_MAX_NODES };
+                let setup = scene.integrator(&s, nodes).map_err(|e| e.to_string())?;
+                let r = Renderer::new(Arc::new(s), setup.integrator).map_err(|e| e.to_string())?;
+                Ok((r, setup.warning))
             });
             match built {
-                Ok(r) => {
-                    mailbox.lock().unwrap().error = None;
+                Ok((r, warning)) => {
+                    mailbox.lock().unwrap().error = warning.map(|w| (generation, w));
                     let start = Instant::now();
                     // A quick first look: one pass at a quarter of the resolution, so a
                     // change shows within a fraction of a full pass.

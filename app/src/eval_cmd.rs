@@ -1,0 +1,780 @@
+//! `nimbus eval`: the thesis's evaluation of the global model (section 5.5, appendix B),
+//! with the figures of merit of CONVENTIONS.md.
+//!
+//! For every scene (A, B, C), lighting configuration (toplit, backlit, frontlit) and
+//! density scale rho (20/40/80 for A and B, 80/160/320 for C) it renders
+//! - the full-transport reference by path tracing (`--spp-ref`, seed 0), cached on disk;
+//! - for every k, the image with prediction at bounce k (`--spp`, seed 100 + k), which
+//!   also holds the path-traced low orders 1 .. k-1 in its low buffer;
+//!
+//! and reports bias (16x box downscale, mean |reference - prediction| over non-empty
+//! pixels), relative bias, TTUV (mean variance of the pixel estimate over non-empty
+//! pixels times render seconds), speedup (TTUV of the reference / TTUV of the
+//! prediction) and time to preview (seconds until the running image is within 5 %
+//! relative RMSE of the reference; path tracing gets its own run with another seed).
+//!
+//! Departure from the thesis, stated here and in the README: the reference high-order
+//! image of the sheets is reference full minus the prediction run's low buffer (the
+//! same path-traced estimator of orders 1 .. k-1) instead of a separate low-order
+//! render per k; bias and speedup use full images only, exactly as the thesis did.
+//!
+//! Every finished render is cached (`OUT/cache`), so a stopped study resumes where it
+//! stopped, and `--scenes`, `--configs`, `--rho` and `--k` pick a subset.
+
+use crate::cli::{init_threads, progress_bar, stop_on_ctrl_c};
+use crate::output::{ToneMap, write_bytes_atomically};
+use crate::scene::SceneFile;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use engine::{Buffer, DensityGrid, Film, Integrator, PassOutcome, RenderControl, Renderer, Scene};
+use models::global::BoundGlobalModel;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+#[derive(Args, Debug, Clone)]
+pub struct EvalArgs {
+    /// Scenes: A (nearly convex), B (concave, multi-lobe), C (heterogeneous).
+    #[arg(long, value_delimiter = ',', default_value = "A,B,C")]
+    pub scenes: Vec<String>,
+    /// Lighting configurations.
+    #[arg(long, value_delimiter = ',', default_value = "toplit,backlit,frontlit")]
+    pub configs: Vec<String>,
+    /// Density scales (default: 20,40,80 for A and B, 80,160,320 for C).
+    #[arg(long, value_delimiter = ',')]
+    pub rho: Vec<f32>,
+    /// Bounces at which the model predicts.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4,8")]
+    pub k: Vec<u32>,
+    /// Image width and height in pixels.
+    #[arg(long, default_value_t = 512)]
+    pub size: u32,
+    /// Samples per pixel of the full-transport reference (thesis: 4096).
+    #[arg(long, default_value_t = 4096)]
+    pub spp_ref: u32,
+    /// Samples per pixel of the predictions (thesis: 2048).
+    #[arg(long, default_value_t = 2048)]
+    pub spp: u32,
+    /// Prediction probability p (thesis: 0.25).
+    #[arg(long, default_value_t = 0.25)]
+    pub p: f32,
+    /// Choose p per configuration and k by minimizing TTUV from pilot passes
+    /// (`progressive::auto_p`) instead of `--p`.
+    #[arg(long)]
+    pub auto_p: bool,
+    /// Density grid resolution of the clouds.
+    #[arg(long, default_value_t = 128)]
+    pub res: u32,
+    /// Depth-field nodes per axis of the model's features.
+    #[arg(long, default_value_t = models::depth_field::DEFAULT_MAX_NODES)]
+    pub field_nodes: u32,
+    /// The global model (default: the shipped one).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Also measure path tracing's time to preview (a second path-traced run per
+    /// configuration, until 5 % relative RMSE or spp-ref / 2 samples).
+    #[arg(long)]
+    pub preview: bool,
+    /// Output directory (tables, plots, sheets, and the render cache).
+    #[arg(long, default_value = "out/eval")]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// The evaluation scenes: label, modeler preset, default density scales.
+pub const SCENES: [(&str, &str, [f32; 3]); 3] = [
+    ("A", "scene-a", [20.0, 40.0, 80.0]),
+    ("B", "scene-b", [20.0, 40.0, 80.0]),
+    ("C", "scene-c", [80.0, 160.0, 320.0]),
+];
+
+/// Thesis table B.2 / 5.2, scene A: speedup at k = 1 and k = 2 (config, rho, [k1, k2]).
+pub const THESIS_SCENE_A_SPEEDUP: [(&str, f32, [f64; 2]); 9] = [
+    ("toplit", 20.0, [9.2, 6.7]),
+    ("toplit", 40.0, [16.5, 12.6]),
+    ("toplit", 80.0, [25.4, 20.6]),
+    ("backlit", 20.0, [6.0, 4.0]),
+    ("backlit", 40.0, [14.1, 9.7]),
+    ("backlit", 80.0, [25.7, 20.7]),
+    ("frontlit", 20.0, [9.8, 8.1]),
+    ("frontlit", 40.0, [13.9, 11.8]),
+    ("frontlit", 80.0, [18.5, 16.0]),
+];
+
+/// Thesis table B.1, scene A: absolute bias at k = 1, 2, 4, 8.
+pub const THESIS_SCENE_A_BIAS: [(&str, f32, [f64; 4]); 9] = [
+    ("toplit", 20.0, [0.0213, 0.0157, 0.0077, 0.0027]),
+    ("toplit", 40.0, [0.0290, 0.0244, 0.0161, 0.0071]),
+    ("toplit", 80.0, [0.0318, 0.0271, 0.0208, 0.0126]),
+    ("backlit", 20.0, [0.0324, 0.0156, 0.0081, 0.0037]),
+    ("backlit", 40.0, [0.0363, 0.0164, 0.0113, 0.0066]),
+    ("backlit", 80.0, [0.0421, 0.0210, 0.0133, 0.0091]),
+    ("frontlit", 20.0, [0.0156, 0.0117, 0.0069, 0.0026]),
+    ("frontlit", 40.0, [0.0234, 0.0195, 0.0143, 0.0078]),
+    ("frontlit", 80.0, [0.0279, 0.0243, 0.0206, 0.0162]),
+];
+
+/// Relative RMSE that counts as a preview (CONVENTIONS.md).
+pub const PREVIEW_RMSE: f64 = 0.05;
+
+/// The figures of merit of one (scene, config, rho, k) cell.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CellResult {
+    pub scene: String,
+    pub config: String,
+    pub rho: f32,
+    pub k: u32,
+    pub p: f32,
+    pub spp_ref: u32,
+    pub spp: u32,
+    pub size: u32,
+    /// Absolute bias (CONVENTIONS.md).
+    pub bias: f64,
+    /// bias / mean reference over the same pixels.
+    pub rel_bias: f64,
+    /// The bias that noise alone would show (both images' variances, after the
+    /// downscale), relative: bias values near it are not resolved.
+    pub rel_noise_floor: f64,
+    pub ttuv_ref: f64,
+    pub ttuv_pred: f64,
+    pub speedup: f64,
+    pub secs_ref: f64,
+    pub secs_pred: f64,
+    /// Seconds to build the model's depth field for this cloud and sun (once per
+    /// configuration; not part of TTUV).
+    pub secs_field: f64,
+    /// Seconds of the automatic-p pilot passes (0 without --auto-p; not part of TTUV).
+    pub secs_pilot: f64,
+    pub preview_secs_pred: Option<f64>,
+    pub preview_secs_ref: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct ReferenceMeta {
+    spp: u32,
+    seconds: f64,
+    ttuv: f64,
+    preview_secs: Option<f64>,
+}
+
+/// An image with the per-pixel variance of its estimate.
+pub struct Image {
+    pub w: u32,
+    pub h: u32,
+    pub mean: Vec<[f32; 3]>,
+    pub var: Vec<[f32; 3]>,
+}
+
+impl Image {
+    fn from_film(film: &Film, b: Buffer) -> Self {
+        Image { w: film.width(), h: film.height(), mean: film.mean(b), var: film.variance_of_mean(b) }
+    }
+}
+
+fn avg3(v: &[f32; 3]) -> f64 {
+    (v[0] as f64 + v[1] as f64 + v[2] as f64) / 3.0
+}
+
+/// Pixels whose reference value is > 0.
+pub fn nonempty(reference: &[[f32; 3]]) -> Vec<bool> {
+    reference.iter().map(|p| avg3(p) > 0.0).collect()
+}
+
+/// TTUV: mean over `mask` of the variance of the pixel estimate, times seconds.
+pub fn ttuv(var: &[[f32; 3]], mask: &[bool], seconds: f64) -> f64 {
+    let (mut s, mut n) = (0.0f64, 0usize);
+    for (v, m) in var.iter().zip(mask) {
+        if *m {
+            s += avg3(v);
+            n += 1;
+        }
+    }
+    if n == 0 { 0.0 } else { s / n as f64 * seconds }
+}
+
+/// Box-filters an image down by `f` per axis (partial blocks at the edges averaged over
+/// the pixels they hold); per-channel means, and the variance of each block mean.
+fn downscale(img: &Image, f: u32) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    let (bw, bh) = (img.w.div_ceil(f), img.h.div_ceil(f));
+    let mut mean = vec![[0.0f64; 3]; (bw * bh) as usize];
+    let mut var = vec![[0.0f64; 3]; (bw * bh) as usize];
+    let mut count = vec![0u32; (bw * bh) as usize];
+    for y in 0..img.h {
+        for x in 0..img.w {
+            let i = (y * img.w + x) as usize;
+            let b = ((y / f) * bw + x / f) as usize;
+            for c in 0..3 {
+                mean[b][c] += img.mean[i][c] as f64;
+                var[b][c] += img.var[i][c] as f64;
+            }
+            count[b] += 1;
+        }
+    }
+    for b in 0..mean.len() {
+        let n = count[b] as f64;
+        for c in 0..3 {
+            mean[b][c] /= n;
+            var[b][c] /= n * n;
+        }
+    }
+    (mean, var)
+}
+
+/// (bias, relative bias, relative noise floor) of `pred` against `reference`
+/// (CONVENTIONS.md): 16x box downscale, mean over blocks with a reference value > 0
+/// of |reference - prediction| averaged over channels; relative = divided by the mean
+/// reference over those blocks. The noise floor is E|N(0, s)| = s sqrt(2 / pi) with
+/// s^2 the two block means' variances, averaged the same way.
+pub fn bias(reference: &Image, pred: &Image) -> (f64, f64, f64) {
+    let (rm, rv) = downscale(reference, 16);
+    let (pm, pv) = downscale(pred, 16);
+    let (mut err, mut refsum, mut floor, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
+    for b in 0..rm.len() {
+        let r = (rm[b][0] + rm[b][1] + rm[b][2]) / 3.0;
+        if r <= 0.0 {
+            continue;
+        }
+        n += 1;
+        refsum += r;
+        for c in 0..3 {
+            err += (rm[b][c] - pm[b][c]).abs() / 3.0;
+            floor += (rv[b][c] + pv[b][c]).sqrt() * (2.0 / std::f64::consts::PI).sqrt() / 3.0;
+        }
+    }
+    if n == 0 || refsum <= 0.0 {
+        return (0.0, 0.0, 0.0);
+    }
+    let (err, mean, floor) = (err / n as f64, refsum / n as f64, floor / n as f64);
+    (err, err / mean, floor / mean)
+}
+
+/// Relative RMSE of `img` against `reference` over `mask`: sqrt(mean squared error)
+/// divided by the mean reference value.
+pub fn relative_rmse(img: &[[f32; 3]], reference: &[[f32; 3]], mask: &[bool]) -> f64 {
+    let (mut se, mut r, mut n) = (0.0f64, 0.0f64, 0usize);
+    for ((a, b), m) in img.iter().zip(reference).zip(mask) {
+        if *m {
+            for c in 0..3 {
+                let d = a[c] as f64 - b[c] as f64;
+                se += d * d / 3.0;
+            }
+            r += avg3(b);
+            n += 1;
+        }
+    }
+    if n == 0 || r <= 0.0 { 0.0 } else { (se / n as f64).sqrt() / (r / n as f64) }
+}
+
+/// What a tracked render returns.
+struct Tracked {
+    film: Film,
+    /// Seconds spent rendering passes (the RMSE checks are not counted).
+    seconds: f64,
+    /// Render seconds until the image first came within 5 % relative RMSE.
+    preview_secs: Option<f64>,
+}
+
+/// Renders up to `spp` passes; with a reference, checks the relative RMSE after every
+/// pass and, if `stop_at_preview`, stops once it is within [`PREVIEW_RMSE`].
+fn render_tracked(
+    scene: Arc<Scene>,
+    integrator: Integrator,
+    spp: u32,
+    control: &RenderControl,
+    reference: Option<(&[[f32; 3]], &[bool])>,
+    stop_at_preview: bool,
+    mut on_pass: impl FnMut(u32),
+) -> Result<Tracked> {
+    let mut r = Renderer::new(scene, integrator)?;
+    let generation = control.generation();
+    let (mut seconds, mut preview_secs) = (0.0f64, None);
+    for done in 1..=spp {
+        let t = Instant::now();
+        if r.render_pass(control, generation) == PassOutcome::Cancelled {
+            bail!("stopped; finished renders are cached and a rerun resumes from them");
+        }
+        seconds += t.elapsed().as_secs_f64();
+        on_pass(done);
+        if let (Some((reference, mask)), None) = (reference, preview_secs) {
+            let film = r.film_handle();
+            let img = film.read().unwrap_or_else(|e| e.into_inner()).mean(Buffer::Full);
+            if relative_rmse(&img, reference, mask) <= PREVIEW_RMSE {
+                preview_secs = Some(seconds);
+                if stop_at_preview {
+                    break;
+                }
+            }
+        }
+    }
+    Ok(Tracked { film: r.snapshot(), seconds, preview_secs })
+}
+
+fn image_npy(img: &[Vec<[f32; 3]>], w: u32, h: u32) -> Vec<u8> {
+    let mut flat = Vec::with_capacity(img.len() * (w * h * 3) as usize);
+    for i in 0..(w * h) as usize {
+        for layer in img {
+            flat.extend_from_slice(&layer[i]);
+        }
+    }
+    models::npy::npy_bytes_f32(&[h as usize, w as usize, 3 * img.len()], &flat)
+}
+
+/// Reads an (h, w, 3 n) image stack back as n layers.
+fn read_image_npy(path: &Path, w: u32, h: u32, n: usize) -> Result<Vec<Vec<[f32; 3]>>> {
+    let (shape, data) = models::npy::read_f32(path)?;
+    if shape != [h as usize, w as usize, 3 * n] {
+        bail!("{}: shape {shape:?}, expected [{h}, {w}, {}]", path.display(), 3 * n);
+    }
+    let mut layers = vec![Vec::with_capacity((w * h) as usize); n];
+    for px in data.chunks_exact(3 * n) {
+        for (l, layer) in layers.iter_mut().enumerate() {
+            layer.push([px[3 * l], px[3 * l + 1], px[3 * l + 2]]);
+        }
+    }
+    Ok(layers)
+}
+
+fn cell_key(key: &str, k: u32, args: &EvalArgs) -> String {
+    let p = if args.auto_p { "auto".to_string() } else { args.p.to_string() };
+    format!("{key}_k{k}_p{p}_spp{}_ref{}", args.spp, args.spp_ref)
+}
+
+fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
+    Ok(write_bytes_atomically(path, serde_json::to_string_pretty(v)?.as_bytes())?)
+}
+
+fn read_json<T: for<'a> Deserialize<'a>>(path: &Path) -> Option<T> {
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+}
+
+/// The scene file of one evaluation configuration.
+pub fn eval_scene(preset: &str, config: &str, rho: f32, size: u32, res: u32) -> Result<SceneFile> {
+    let text = format!(
+        "[grid]\npreset = \"{preset}\"\nresolution = {res}\n[medium]\nrho = {rho}\nalbedo = 1.0\nphase = \"hg\"\ng = 0.85\n\
+         [camera]\npreset = \"{config}\"\nwidth = {size}\nheight = {size}\n"
+    );
+    let s = SceneFile::from_toml_str(&text, "evaluation scene")?;
+    s.validate()?;
+    Ok(s)
+}
+
+/// Runs the study (or the selected part of it); returns every cell's result.
+pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
+    let threads = init_threads(args.threads)?;
+    for c in &args.configs {
+        if crate::scene::CameraPreset::from_name(c).is_none() {
+            bail!("--configs {c}: choose from toplit, backlit, frontlit");
+        }
+    }
+    let mut scenes = vec![];
+    for s in &args.scenes {
+        let found = SCENES.iter().find(|(l, _, _)| l.eq_ignore_ascii_case(s));
+        scenes.push(*found.with_context(|| format!("--scenes {s}: choose from A, B, C"))?);
+    }
+    if args.k.is_empty() || args.k.iter().any(|k| !(1..=64).contains(k)) {
+        bail!("--k {:?}: every k must lie in 1 ..= 64", args.k);
+    }
+    if !(args.p > 0.0 && args.p <= 1.0) {
+        bail!("--p {}: must lie in (0, 1]", args.p);
+    }
+    if args.spp == 0 || args.spp_ref == 0 || args.size == 0 {
+        bail!("--spp, --spp-ref and --size must be at least 1");
+    }
+    let model = match &args.model {
+        Some(p) => Arc::new(models::global::GlobalModel::load(p)?),
+        None => models::global::GlobalModel::shipped()?,
+    };
+    let control = Arc::new(RenderControl::new());
+    stop_on_ctrl_c(&control);
+    let cache = args.out.join("cache");
+    std::fs::create_dir_all(&cache).with_context(|| format!("cannot create {}", cache.display()))?;
+    let groups: Vec<(&str, &str, String, f32)> = scenes
+        .iter()
+        .flat_map(|(label, preset, rhos)| {
+            let rhos: Vec<f32> = if args.rho.is_empty() { rhos.to_vec() } else { args.rho.clone() };
+            args.configs
+                .iter()
+                .flat_map(move |c| rhos.clone().into_iter().map(move |r| (*label, *preset, c.clone(), r)))
+        })
+        .collect();
+    if !args.quiet {
+        eprintln!(
+            "nimbus eval: {} configurations x k {:?}, {}x{}, reference {} spp, predictions {} spp, p {}, {threads} threads, model {}",
+            groups.len(),
+            args.k,
+            args.size,
+            args.size,
+            args.spp_ref,
+            args.spp,
+            args.p,
+            args.model.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "shipped".into())
+        );
+    }
+    let renders_per_group = args.spp_ref as u64 + args.spp as u64 * args.k.len() as u64;
+    let bar = progress_bar(groups.len() as u64 * renders_per_group, "passes", args.quiet);
+    let mut results = vec![];
+    let mut grids: Vec<(String, Arc<DensityGrid>)> = vec![];
+    for (gi, (label, preset, config, rho)) in groups.iter().enumerate() {
+        let base = (gi as u64) * renders_per_group;
+        bar.set_position(base);
+        bar.set_message(format!("scene {label} {config} rho {rho}"));
+        let file = eval_scene(preset, config, *rho, args.size, args.res)?;
+        let grid = match grids.iter().find(|(p, _)| p == preset) {
+            Some((_, g)) => g.clone(),
+            None => {
+                let g = Arc::new(file.build_grid()?);
+                grids.push((preset.to_string(), g.clone()));
+                g
+            }
+        };
+        let scene = Arc::new(file.build_scene(Some(grid))?);
+        let key = format!("{label}_{config}_rho{rho}_{}px_res{}", args.size, args.res);
+        // The reference, from the cache or rendered now.
+        let ref_npy = cache.join(format!("{key}_ref{}.npy", args.spp_ref));
+        let ref_json = ref_npy.with_extension("json");
+        let (reference, mut meta) = match (read_json::<ReferenceMeta>(&ref_json), ref_npy.exists()) {
+            (Some(meta), true) => {
+                let layers = read_image_npy(&ref_npy, args.size, args.size, 2)?;
+                let mut it = layers.into_iter();
+                let (mean, var) = (it.next().unwrap(), it.next().unwrap());
+                (Image { w: args.size, h: args.size, mean, var }, meta)
+            }
+            _ => {
+                let mut f = file.clone();
+                f.seed = 0;
+                f.k = 1;
+                let t = render_tracked(
+                    scene.clone(),
+                    f.integrator_with(None)?,
+                    args.spp_ref,
+                    &control,
+                    None,
+                    false,
+                    |d| bar.set_position(base + d as u64),
+                )?;
+                let img = Image::from_film(&t.film, Buffer::Full);
+                let mask = nonempty(&img.mean);
+                let meta = ReferenceMeta {
+                    spp: args.spp_ref,
+                    seconds: t.seconds,
+                    ttuv: ttuv(&img.var, &mask, t.seconds),
+                    preview_secs: None,
+                };
+                write_bytes_atomically(
+                    &ref_npy,
+                    &image_npy(&[img.mean.clone(), img.var.clone()], args.size, args.size),
+                )?;
+                write_json(&ref_json, &meta)?;
+                (img, meta)
+            }
+        };
+        let mask = nonempty(&reference.mean);
+        if args.preview && meta.preview_secs.is_none() {
+            let mut f = file.clone();
+            f.seed = 7;
+            f.k = 1;
+            let t = render_tracked(
+                scene.clone(),
+                f.integrator_with(None)?,
+                (args.spp_ref / 2).max(1),
+                &control,
+                Some((&reference.mean, &mask)),
+                true,
+                |_| {},
+            )?;
+            meta.preview_secs = t.preview_secs;
+            write_json(&ref_json, &meta)?;
+        }
+        // The model bound to this cloud and sun, built once for every k.
+        let mut bound: Option<(Arc<BoundGlobalModel>, f64)> = None;
+        let mut group_cells = vec![];
+        for (ki, &k) in args.k.iter().enumerate() {
+            let kbase = base + args.spp_ref as u64 + ki as u64 * args.spp as u64;
+            bar.set_position(kbase);
+            let cell_key = cell_key(&key, k, args);
+            let cell_json = cache.join(format!("{cell_key}.json"));
+            let cell_npy = cache.join(format!("{cell_key}.npy"));
+            if let (Some(cell), true) = (read_json::<CellResult>(&cell_json), cell_npy.exists()) {
+                group_cells.push(cell);
+                continue;
+            }
+            let (pred, secs_field) = match &bound {
+                Some(b) => b.clone(),
+                None => {
+                    let t = Instant::now();
+                    let sun = scene.sun.as_ref().expect("evaluation scenes have a sun");
+                    let b = Arc::new(BoundGlobalModel::new(model.clone(), &scene.medium, sun, args.field_nodes));
+                    let built = (b, t.elapsed().as_secs_f64());
+                    bound = Some(built.clone());
+                    built
+                }
+            };
+            let mut f = file.clone();
+            f.seed = 100 + k as u64;
+            f.k = k;
+            f.render.mode = "predict".into();
+            f.render.p = args.p;
+            let t_pilot = Instant::now();
+            if args.auto_p {
+                f.render.p = crate::progressive::auto_p(scene.clone(), f.settings(), pred.clone(), 8, &control)?.p;
+            }
+            let secs_pilot = if args.auto_p { t_pilot.elapsed().as_secs_f64() } else { 0.0 };
+            let integrator = f.integrator_with(Some(pred))?;
+            let t = render_tracked(
+                scene.clone(),
+                integrator,
+                args.spp,
+                &control,
+                Some((&reference.mean, &mask)),
+                false,
+                |d| bar.set_position(kbase + d as u64),
+            )?;
+            let full = Image::from_film(&t.film, Buffer::Full);
+            let (b, rb, floor) = bias(&reference, &full);
+            let ttuv_pred = ttuv(&full.var, &mask, t.seconds);
+            let cell = CellResult {
+                scene: label.to_string(),
+                config: config.clone(),
+                rho: *rho,
+                k,
+                p: f.render.p,
+                spp_ref: args.spp_ref,
+                spp: args.spp,
+                size: args.size,
+                bias: b,
+                rel_bias: rb,
+                rel_noise_floor: floor,
+                ttuv_ref: meta.ttuv,
+                ttuv_pred,
+                speedup: if ttuv_pred > 0.0 { meta.ttuv / ttuv_pred } else { f64::INFINITY },
+                secs_ref: meta.seconds,
+                secs_pred: t.seconds,
+                secs_field,
+                secs_pilot,
+                preview_secs_pred: t.preview_secs,
+                preview_secs_ref: meta.preview_secs,
+            };
+            let layers = [full.mean, t.film.mean(Buffer::Low), t.film.mean(Buffer::High)];
+            write_bytes_atomically(&cell_npy, &image_npy(&layers, args.size, args.size))?;
+            write_json(&cell_json, &cell)?;
+            group_cells.push(cell);
+        }
+        // Fill in what a cached cell could not know (a later --preview run).
+        for c in &mut group_cells {
+            c.preview_secs_ref = meta.preview_secs;
+        }
+        write_sheet(&args.out.join(format!("sheet_{key}.png")), &reference, &cache, &key, args)?;
+        results.extend(group_cells);
+    }
+    bar.finish_and_clear();
+    write_reports(&args.out, &results, args)?;
+    Ok(results)
+}
+
+/// False colour for t in [0, 1]: black, purple, orange, yellow (an inferno-like ramp).
+fn false_colour(t: f32) -> [u8; 3] {
+    const STOPS: [[f32; 3]; 5] =
+        [[0.0, 0.0, 0.02], [0.34, 0.06, 0.43], [0.73, 0.21, 0.33], [0.98, 0.55, 0.04], [0.99, 1.0, 0.64]];
+    let x = t.clamp(0.0, 1.0) * 4.0;
+    let i = (x.floor() as usize).min(3);
+    let f = x - i as f32;
+    std::array::from_fn(|c| ((STOPS[i][c] * (1.0 - f) + STOPS[i + 1][c] * f) * 255.0 + 0.5) as u8)
+}
+
+/// One PNG per configuration, one row per k: reference full, prediction full,
+/// low orders (1 .. k-1), reference high orders (reference - low), predicted high
+/// orders, and |predicted - reference high| in false colour (scale: black 0, yellow
+/// = half the mean reference over non-empty pixels), like the thesis's figure 5.9.
+fn write_sheet(path: &Path, reference: &Image, cache: &Path, key: &str, args: &EvalArgs) -> Result<()> {
+    let (w, h) = (reference.w, reference.h);
+    let gap = 4u32;
+    let mut sheet =
+        image::RgbImage::from_pixel(6 * w + 5 * gap, args.k.len() as u32 * (h + gap), image::Rgb([40, 40, 40]));
+    let mask = nonempty(&reference.mean);
+    let ref_mean = {
+        let (s, n) =
+            reference.mean.iter().zip(&mask).filter(|(_, m)| **m).fold((0.0, 0), |(s, n), (p, _)| (s + avg3(p), n + 1));
+        if n > 0 { s / n as f64 } else { 1.0 }
+    };
+    let tone = ToneMap::Filmic;
+    for (row, &k) in args.k.iter().enumerate() {
+        let cell_npy = cache.join(format!("{}.npy", cell_key(key, k, args)));
+        let Ok(layers) = read_image_npy(&cell_npy, w, h, 3) else { continue };
+        let (full, low, high) = (&layers[0], &layers[1], &layers[2]);
+        let ref_high: Vec<[f32; 3]> =
+            reference.mean.iter().zip(low).map(|(r, l)| std::array::from_fn(|c| (r[c] - l[c]).max(0.0))).collect();
+        let toned = |img: &Vec<[f32; 3]>| img.iter().map(|p| p.map(|v| tone.apply(v, 0.0))).collect::<Vec<[u8; 3]>>();
+        let error: Vec<[u8; 3]> = high
+            .iter()
+            .zip(&ref_high)
+            .map(|(a, b)| false_colour((avg3(&std::array::from_fn(|c| (a[c] - b[c]).abs())) / (0.5 * ref_mean)) as f32))
+            .collect();
+        let tiles = [toned(&reference.mean), toned(full), toned(low), toned(&ref_high), toned(high), error];
+        for (col, tile) in tiles.iter().enumerate() {
+            let (ox, oy) = (col as u32 * (w + gap), row as u32 * (h + gap));
+            for y in 0..h {
+                for x in 0..w {
+                    sheet.put_pixel(ox + x, oy + y, image::Rgb(tile[(y * w + x) as usize]));
+                }
+            }
+        }
+    }
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    sheet.write_to(&mut bytes, image::ImageFormat::Png)?;
+    write_bytes_atomically(path, &bytes.into_inner())?;
+    Ok(())
+}
+
+fn fmt_opt(v: Option<f64>) -> String {
+    v.map(|s| format!("{s:.1}")).unwrap_or_else(|| "-".into())
+}
+
+/// results.csv, results.md (tables like the thesis's B.1-B.6) and the bias and speedup
+/// plots against k (figure 5.8), one pair per scene.
+fn write_reports(out: &Path, results: &[CellResult], args: &EvalArgs) -> Result<()> {
+    let mut csv = String::from(
+        "scene,config,rho,k,p,size,spp_ref,spp,bias,rel_bias,rel_noise_floor,ttuv_ref,ttuv_pred,speedup,secs_ref,secs_pred,secs_field,secs_pilot,preview_secs_ref,preview_secs_pred\n",
+    );
+    for c in results {
+        csv += &format!(
+            "{},{},{},{},{},{},{},{},{:.6e},{:.6},{:.6},{:.6e},{:.6e},{:.3},{:.2},{:.2},{:.2},{:.2},{},{}\n",
+            c.scene,
+            c.config,
+            c.rho,
+            c.k,
+            c.p,
+            c.size,
+            c.spp_ref,
+            c.spp,
+            c.bias,
+            c.rel_bias,
+            c.rel_noise_floor,
+            c.ttuv_ref,
+            c.ttuv_pred,
+            c.speedup,
+            c.secs_ref,
+            c.secs_pred,
+            c.secs_field,
+            c.secs_pilot,
+            c.preview_secs_ref.map(|v| v.to_string()).unwrap_or_default(),
+            c.preview_secs_pred.map(|v| v.to_string()).unwrap_or_default()
+        );
+    }
+    write_bytes_atomically(&out.join("results.csv"), csv.as_bytes())?;
+    let mut md = format!(
+        "# nimbus eval\n\n{}x{} pixels, reference {} spp, predictions {} spp, p = {}, grids {}^3, albedo 1, HG g = 0.85.\n\
+         Cells: relative bias (noise floor) / speedup in TTUV. Bias as in CONVENTIONS.md (16x box downscale).\n",
+        args.size,
+        args.size,
+        args.spp_ref,
+        args.spp,
+        if args.auto_p { "automatic (per cell, see results.csv)".to_string() } else { args.p.to_string() },
+        args.res
+    );
+    let mut scenes: Vec<&str> = results.iter().map(|c| c.scene.as_str()).collect();
+    scenes.dedup();
+    for s in &scenes {
+        let mut ks: Vec<u32> = results.iter().filter(|c| c.scene == *s).map(|c| c.k).collect();
+        ks.sort();
+        ks.dedup();
+        md += &format!(
+            "\n## Scene {s}\n\n| config | rho | TTUV reference | {} |\n|---|---|---|{}\n",
+            ks.iter().map(|k| format!("k = {k}")).collect::<Vec<_>>().join(" | "),
+            "---|".repeat(ks.len())
+        );
+        let mut rows: Vec<(&str, f32)> =
+            results.iter().filter(|c| c.scene == *s).map(|c| (c.config.as_str(), c.rho)).collect();
+        rows.dedup();
+        for (config, rho) in &rows {
+            let cells: Vec<&CellResult> =
+                results.iter().filter(|c| c.scene == *s && c.config == *config && c.rho == *rho).collect();
+            let ttuv_ref = cells.first().map(|c| c.ttuv_ref).unwrap_or(0.0);
+            let cols: Vec<String> = ks
+                .iter()
+                .map(|k| match cells.iter().find(|c| c.k == *k) {
+                    Some(c) => {
+                        format!("{:.2} % ({:.2} %) / {:.1}x", 100.0 * c.rel_bias, 100.0 * c.rel_noise_floor, c.speedup)
+                    }
+                    None => "-".into(),
+                })
+                .collect();
+            md += &format!("| {config} | {rho} | {ttuv_ref:.3e} | {} |\n", cols.join(" | "));
+        }
+        if *s == "A" {
+            md += "\nScene A beside the thesis (table B.2 speedup, B.1 absolute bias; our bias is in the units of a unit-radiance sun, like the thesis's):\n\n\
+                   | config | rho | speedup k=1 (thesis) | speedup k=2 (thesis) | bias k=1 (thesis) |\n|---|---|---|---|---|\n";
+            for (config, rho, sp) in THESIS_SCENE_A_SPEEDUP {
+                let get =
+                    |k: u32| results.iter().find(|c| c.scene == "A" && c.config == config && c.rho == rho && c.k == k);
+                let bias_t =
+                    THESIS_SCENE_A_BIAS.iter().find(|b| b.0 == config && b.1 == rho).map(|b| b.2[0]).unwrap_or(0.0);
+                if get(1).is_none() && get(2).is_none() {
+                    continue;
+                }
+                md += &format!(
+                    "| {config} | {rho} | {} ({:.1}x) | {} ({:.1}x) | {} ({bias_t}) |\n",
+                    get(1).map(|c| format!("{:.1}x", c.speedup)).unwrap_or("-".into()),
+                    sp[0],
+                    get(2).map(|c| format!("{:.1}x", c.speedup)).unwrap_or("-".into()),
+                    sp[1],
+                    get(1).map(|c| format!("{:.4}", c.bias)).unwrap_or("-".into()),
+                );
+            }
+        }
+        let previews: Vec<&CellResult> = results
+            .iter()
+            .filter(|c| c.scene == *s && (c.preview_secs_ref.is_some() || c.preview_secs_pred.is_some()))
+            .collect();
+        if !previews.is_empty() {
+            md += "\nTime to preview (5 % relative RMSE), seconds: path tracing / prediction\n\n| config | rho | k | PT | prediction |\n|---|---|---|---|---|\n";
+            for c in previews {
+                md += &format!(
+                    "| {} | {} | {} | {} | {} |\n",
+                    c.config,
+                    c.rho,
+                    c.k,
+                    fmt_opt(c.preview_secs_ref),
+                    fmt_opt(c.preview_secs_pred)
+                );
+            }
+        }
+        // Plots against k, one series per (config, rho).
+        let mut bias_series = vec![];
+        let mut speed_series = vec![];
+        for (i, (config, rho)) in rows.iter().enumerate() {
+            let cells: Vec<&CellResult> =
+                results.iter().filter(|c| c.scene == *s && c.config == *config && c.rho == *rho).collect();
+            let colour = models::plot::PALETTE[i % models::plot::PALETTE.len()];
+            let label = format!("{config} {rho}");
+            bias_series.push(models::plot::Series {
+                label: label.clone(),
+                colour,
+                points: cells.iter().map(|c| (c.k as f64, c.rel_bias)).collect(),
+            });
+            speed_series.push(models::plot::Series {
+                label,
+                colour,
+                points: cells.iter().map(|c| (c.k as f64, c.speedup)).collect(),
+            });
+        }
+        let title = format!("scene {s}");
+        write_bytes_atomically(
+            &out.join(format!("bias_{s}.png")),
+            &models::plot::line_plot_png(&title, "k", "relative bias", &bias_series),
+        )?;
+        write_bytes_atomically(
+            &out.join(format!("speedup_{s}.png")),
+            &models::plot::line_plot_png(&title, "k", "speedup", &speed_series),
+        )?;
+    }
+    write_bytes_atomically(&out.join("results.md"), md.as_bytes())?;
+    if !args.quiet {
+        println!("{md}");
+        eprintln!("wrote results.md, results.csv, plots and sheets to {}", out.display());
+    }
+    Ok(())
+}
