@@ -576,7 +576,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
 }
 
 /// False colour for t in [0, 1]: black, purple, orange, yellow (an inferno-like ramp).
-fn false_colour(t: f32) -> [u8; 3] {
+pub fn false_colour(t: f32) -> [u8; 3] {
     const STOPS: [[f32; 3]; 5] =
         [[0.0, 0.0, 0.02], [0.34, 0.06, 0.43], [0.73, 0.21, 0.33], [0.98, 0.55, 0.04], [0.99, 1.0, 0.64]];
     let x = t.clamp(0.0, 1.0) * 4.0;

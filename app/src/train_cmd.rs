@@ -257,6 +257,21 @@ fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<(
         sink += model.predict(&medium, &sun, p, w);
     }
     let full_ns = t.elapsed().as_secs_f64() * 1e9 / m as f64;
+    // The renderer's path: features from the depth field (built once per cloud and sun).
+    let t = std::time::Instant::now();
+    let bound = models::global::BoundGlobalModel::new(
+        Arc::new(model.clone()),
+        &medium,
+        &sun,
+        models::depth_field::DEFAULT_MAX_NODES,
+    );
+    let field_secs = t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
+    for i in 0..n / 4 {
+        let (p, w) = points[i % points.len()];
+        sink += bound.predict(&medium, &sun, p, w);
+    }
+    let bound_ns = t.elapsed().as_secs_f64() * 1e9 / (n / 4) as f64;
     let t = std::time::Instant::now();
     let phase = medium.phase();
     for i in 0..m {
@@ -272,6 +287,7 @@ fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<(
     let event_ns = t.elapsed().as_secs_f64() * 1e9 / m as f64;
     std::hint::black_box(sink);
     let features_ns = full_ns - net_ns;
+    let field_features_ns = bound_ns - net_ns;
     println!("# nimbus bench predict: one thread, {} ({} features)", model.name(), n_f);
     println!("| measurement | ns per prediction | goal |");
     println!("|---|---|---|");
@@ -279,8 +295,21 @@ fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<(
     println!("| network alone, batched (1024) | {batch_ns:.0} | |");
     println!("| features + network, scene-a 128^3, rho {} | {full_ns:.0} | |", args.rho);
     println!(
-        "| features alone | {features_ns:.0} = {:.1} path-traced scattering events ({event_ns:.0} ns each) | <= 5 events |",
+        "| features alone, ray marched | {features_ns:.0} = {:.1} path-traced scattering events ({event_ns:.0} ns each) | |",
         features_ns / event_ns
+    );
+    println!("| features + network, depth field (the renderer's path) | {bound_ns:.0} | |");
+    println!(
+        "| features alone, depth field | {field_features_ns:.0} = {:.2} path-traced scattering events | <= 5 events |",
+        field_features_ns / event_ns
+    );
+    let f = bound.field();
+    println!(
+        "| depth field build ({}^3 nodes x {} directions, {:.0} MiB, one thread) | {:.2} s once per cloud and sun | |",
+        f.nodes().x,
+        f.n_dirs(),
+        f.memory_bytes() as f64 / 1048576.0,
+        field_secs
     );
     Ok(())
 }

@@ -66,3 +66,27 @@ fn panels_edits_and_undo() {
     let (text, is_error) = fresh.state().message().cloned().expect("a message");
     assert!(is_error && text.contains("nothing rendered yet"), "{text}");
 }
+
+/// Prediction mode with the comparison on: the buffer panel appears and the relative
+/// bias of the prediction against the path-traced reference becomes a number.
+#[test]
+fn compare_panel_shows_the_bias() {
+    let mut h = harness();
+    let mut s = h.state().scene().clone();
+    (s.camera.width, s.camera.height, s.grid.resolution) = (32, 32, 32);
+    s.render.mode = "predict".into();
+    h.state_mut().set_scene(s);
+    h.state_mut().set_compare(true);
+    let start = std::time::Instant::now();
+    while h.state().compare_bias().is_none() {
+        assert!(start.elapsed().as_secs() < 120, "no comparison appeared");
+        h.run_steps(1);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    h.run_steps(2);
+    h.get_by_label("Compare");
+    h.get_by_label("predicted high orders");
+    h.get_by_label("reference high orders");
+    let (rel, floor) = h.state().compare_bias().unwrap();
+    assert!(rel.is_finite() && rel >= 0.0 && floor > 0.0, "{rel} {floor}");
+}

@@ -55,3 +55,36 @@ fn worker_renders_restarts_and_reports_errors() {
     let g4 = worker.render(&small_scene(5.0), false);
     wait_for(|| worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g4));
 }
+
+/// Compare mode: the path-traced reference of the same scene and k accumulates next to
+/// the prediction, with its own seed; without compare, or in reference mode, there is
+/// no second render.
+#[test]
+fn compare_mode_renders_the_reference_alongside() {
+    let worker = WorkerHandle::start(|| {});
+    let mut s = small_scene(10.0);
+    s.render.mode = "predict".into();
+    s.k = 2;
+    let g = worker.render_compare(&s, false, true);
+    let done = |g: u64| {
+        move |w: &WorkerHandle| {
+            w.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| {
+                p.generation == g && p.film.spp() >= 3 && p.reference.as_ref().is_some_and(|r| r.spp() >= 3)
+            })
+        }
+    };
+    wait_for(|| done(g)(&worker));
+    let p = worker.mailbox.lock().unwrap().latest.clone().unwrap();
+    let r = p.reference.clone().unwrap();
+    assert_eq!((r.width(), r.height()), (p.film.width(), p.film.height()));
+    assert!(r.average(engine::Buffer::High) > 0.0 && p.film.average(engine::Buffer::High) > 0.0);
+    assert!(r.sums(engine::Buffer::Full) != p.film.sums(engine::Buffer::Full), "two different estimators");
+    for (mode, compare) in [("predict", false), ("reference", true)] {
+        s.render.mode = mode.into();
+        let g = worker.render_compare(&s, false, compare);
+        wait_for(|| {
+            worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g && p.film.spp() >= 2)
+        });
+        assert!(worker.mailbox.lock().unwrap().latest.as_ref().unwrap().reference.is_none(), "{mode} {compare}");
+    }
+}

@@ -3,10 +3,12 @@
 //! thread (`worker`); the UI only edits a scene description, sends it, and shows the
 //! latest finished pass through one texture.
 
+pub mod compare;
 pub mod worker;
 
 use crate::output::ToneMap;
 use crate::scene::{CameraPreset, SceneFile, default_up};
+use compare::CompareView;
 use eframe::egui;
 use engine::Buffer;
 use glam::Vec3;
@@ -113,7 +115,11 @@ pub struct NimbusApp {
     tone: ToneMap,
     view_buffer: Buffer,
     worker: WorkerHandle,
-    sent: Option<(SceneFile, bool)>,
+    /// The last scene sent to the worker, whether coarse, whether in compare mode.
+    sent: Option<(SceneFile, bool, bool)>,
+    /// Reference and prediction side by side, with the buffer panels.
+    compare: bool,
+    compare_view: CompareView,
     texture: Option<egui::TextureHandle>,
     shown: Option<(u64, u32, f32, Buffer)>,
 }
@@ -142,6 +148,8 @@ impl NimbusApp {
             view_buffer: Buffer::Full,
             worker,
             sent: None,
+            compare: false,
+            compare_view: CompareView::default(),
             texture: None,
             shown: None,
         };
@@ -189,6 +197,17 @@ impl NimbusApp {
     /// Queues an action (menu items, shortcuts, tests).
     pub fn request(&mut self, action: Action) {
         self.actions.push(action);
+    }
+
+    /// Turns the side-by-side comparison with path tracing on or off.
+    pub fn set_compare(&mut self, on: bool) {
+        self.compare = on;
+    }
+
+    /// The comparison's numbers: (relative bias, its noise floor), once both renders
+    /// have samples.
+    pub fn compare_bias(&self) -> Option<(f64, f64)> {
+        self.compare_view.bias
     }
 
     pub fn message(&self) -> Option<&(String, bool)> {
@@ -471,6 +490,8 @@ impl NimbusApp {
             ui.add(egui::Slider::new(&mut self.scene.k, 1..=8).text("k (first high order)"));
             if self.scene.render.mode == "predict" {
                 ui.add(egui::Slider::new(&mut self.scene.render.p, 0.05..=1.0).text("prediction probability p"));
+                ui.checkbox(&mut self.compare, "compare with path tracing")
+                    .on_hover_text("reference and prediction side by side, with the low, high and error buffers");
                 ui.label(match &self.scene.render.model {
                     Some(m) => format!("model: {m}"),
                     None => "model: shipped global model".to_string(),
@@ -520,16 +541,23 @@ impl NimbusApp {
         let avail = ui.available_size();
         let (rect, response) = ui.allocate_exact_size(avail, egui::Sense::click_and_drag());
         ui.painter().rect_filled(rect, 0.0, egui::Color32::from_gray(12));
-        if let Some(t) = &self.texture {
-            let size = t.size_vec2();
-            let scale = (rect.width() / size.x).min(rect.height() / size.y);
-            let shown = egui::Rect::from_center_size(rect.center(), size * scale);
-            ui.painter().image(
-                t.id(),
-                shown,
-                egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
-                egui::Color32::WHITE,
-            );
+        let side_by_side = self.compare && published.as_ref().is_some_and(|p| p.reference.is_some());
+        if side_by_side {
+            if let Some(p) = &published {
+                self.compare_view.update(ui.ctx(), p, self.tone, self.exposure, self.view_buffer);
+            }
+            let half = rect.width() / 2.0;
+            let left = egui::Rect::from_min_size(rect.min, egui::vec2(half, rect.height()));
+            let right = egui::Rect::from_min_size(rect.min + egui::vec2(half, 0.0), egui::vec2(half, rect.height()));
+            let k = self.scene.k;
+            if let Some(t) = &self.compare_view.reference {
+                paint_fitted(ui, t, left, "path tracing (reference)");
+            }
+            if let Some(t) = &self.texture {
+                paint_fitted(ui, t, right, &format!("prediction at bounce {k}"));
+            }
+        } else if let Some(t) = &self.texture {
+            paint_fitted(ui, t, rect, "");
         }
         if response.dragged() {
             let d = response.drag_delta();
@@ -578,7 +606,10 @@ impl NimbusApp {
     fn sync(&mut self, ctx: &egui::Context) {
         self.apply_camera();
         let dragging = ctx.input(|i| i.pointer.any_down());
-        let changed = self.sent.as_ref().is_none_or(|(s, coarse)| *s != self.scene || (*coarse && !dragging));
+        let changed = self
+            .sent
+            .as_ref()
+            .is_none_or(|(s, coarse, cmp)| *s != self.scene || (*coarse && !dragging) || *cmp != self.compare);
         if !dragging {
             self.history.record(&self.scene);
         }
@@ -587,10 +618,10 @@ impl NimbusApp {
                 self.worker.mailbox.lock().unwrap().error = Some((0, e.to_string()));
                 return;
             }
-            let grid_changed = self.sent.as_ref().is_none_or(|(s, _)| s.grid != self.scene.grid);
-            let coarse = dragging && grid_changed || dragging && self.sent.as_ref().is_some_and(|(_, c)| *c);
-            self.worker.render(&self.scene, coarse);
-            self.sent = Some((self.scene.clone(), coarse));
+            let grid_changed = self.sent.as_ref().is_none_or(|(s, _, _)| s.grid != self.scene.grid);
+            let coarse = dragging && grid_changed || dragging && self.sent.as_ref().is_some_and(|(_, c, _)| *c);
+            self.worker.render_compare(&self.scene, coarse, self.compare);
+            self.sent = Some((self.scene.clone(), coarse, self.compare));
         }
     }
 }
@@ -600,6 +631,9 @@ impl eframe::App for NimbusApp {
         egui::Panel::top("menu").show(ui, |ui| self.menu(ui));
         egui::Panel::right("controls").resizable(true).default_size(300.0).show(ui, |ui| self.controls(ui));
         egui::Panel::bottom("status").show(ui, |ui| self.status(ui));
+        if self.compare && self.scene.render.mode == "predict" {
+            egui::Panel::left("buffers").resizable(true).default_size(200.0).show(ui, |ui| self.compare_view.panel(ui));
+        }
         egui::CentralPanel::default().show(ui, |ui| self.viewport(ui));
         let ctx = ui.ctx().clone();
         self.shortcuts(&ctx);
@@ -613,6 +647,24 @@ impl eframe::App for NimbusApp {
 }
 
 /// Opens the window; returns when it is closed.
+/// Draws a texture into `rect`, scaled to fit and centred, with a caption on top.
+fn paint_fitted(ui: &egui::Ui, t: &egui::TextureHandle, rect: egui::Rect, caption: &str) {
+    let size = t.size_vec2();
+    let scale = (rect.width() / size.x).min(rect.height() / size.y);
+    let shown = egui::Rect::from_center_size(rect.center(), size * scale);
+    let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
+    ui.painter().image(t.id(), shown, uv, egui::Color32::WHITE);
+    if !caption.is_empty() {
+        ui.painter().text(
+            rect.min + egui::vec2(8.0, 6.0),
+            egui::Align2::LEFT_TOP,
+            caption,
+            egui::FontId::proportional(14.0),
+            egui::Color32::from_gray(220),
+        );
+    }
+}
+
 pub fn run() -> anyhow::Result<()> {
     let options = eframe::NativeOptions {
         viewport: egui::ViewportBuilder::default().with_inner_size([1180.0, 760.0]).with_title("Nimbus"),

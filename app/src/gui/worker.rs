@@ -17,6 +17,9 @@ pub enum Command {
         scene: Box<SceneFile>,
         coarse: bool,
         generation: u64,
+        /// Also render the path-traced reference of the same scene and k, a pass of
+        /// each in turn (only when the scene is in prediction mode).
+        compare: bool,
     },
     Quit,
 }
@@ -32,6 +35,18 @@ pub struct Published {
     /// Relative standard error of the full image (mean over lit pixels).
     pub noise: f64,
     pub coarse: bool,
+    /// In compare mode: the path-traced reference (same scene, same k, its own seed),
+    /// accumulating alongside `film`.
+    pub reference: Option<Arc<Film>>,
+}
+
+/// A render under way: the scene's renderer and, in compare mode, the reference's.
+struct Job {
+    main: Renderer,
+    reference: Option<Renderer>,
+    generation: u64,
+    start: Instant,
+    coarse: bool,
 }
 
 /// Shared between the worker and the UI.
@@ -76,7 +91,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
     // The last cloud built, keyed by its description, so camera or light changes do
     // not rebuild it.
     let mut cache: Option<(String, Arc<DensityGrid>)> = None;
-    let mut job: Option<(Renderer, u64, Instant, bool)> = None;
+    let mut job: Option<Job> = None;
     loop {
         // Take the newest command; block only when idle.
         let mut next = None;
@@ -98,7 +113,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                 c @ Command::Render { .. } => next = Some(c),
             }
         }
-        if let Some(Command::Render { mut scene, coarse, generation }) = next {
+        if let Some(Command::Render { mut scene, coarse, generation, compare }) = next {
             job = None;
             if coarse {
                 scene.grid.resolution = scene.grid.resolution.min(COARSE_RESOLUTION);
@@ -126,11 +141,22 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                 // A coarse depth field while a slider moves: built in a fraction of the time.
                 let nodes = if coarse { COARSE_RESOLUTION / 2 } else { models::depth_field::DEFAULT_MAX_NODES };
                 let setup = scene.integrator(&s, nodes).map_err(|e| e.to_string())?;
-                let r = Renderer::new(Arc::new(s), setup.integrator).map_err(|e| e.to_string())?;
-                Ok((r, setup.warning))
+                let predicting = matches!(setup.integrator.settings().mode, engine::Mode::Predict { .. });
+                let s = Arc::new(s);
+                let reference = if compare && predicting {
+                    let mut rs = (*scene).clone();
+                    rs.render.mode = "reference".into();
+                    rs.seed = rs.seed.wrapping_add(1);
+                    let integ = rs.integrator_with(None).map_err(|e| e.to_string())?;
+                    Some(Renderer::new(s.clone(), integ).map_err(|e| e.to_string())?)
+                } else {
+                    None
+                };
+                let r = Renderer::new(s, setup.integrator).map_err(|e| e.to_string())?;
+                Ok((r, reference, setup.warning))
             });
             match built {
-                Ok((r, warning)) => {
+                Ok((r, reference, warning)) => {
                     mailbox.lock().unwrap().error = warning.map(|w| (generation, w));
                     let start = Instant::now();
                     // A quick first look: one pass at a quarter of the resolution, so a
@@ -144,10 +170,11 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                             render_secs: secs,
                             film: Arc::new(film),
                             coarse: true,
+                            reference: None,
                         });
                         wake();
                     }
-                    job = Some((r, generation, start, coarse));
+                    job = Some(Job { main: r, reference, generation, start, coarse });
                 }
                 Err(e) => {
                     mailbox.lock().unwrap().error = Some((generation, e));
@@ -156,25 +183,32 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             }
             continue;
         }
-        let Some((renderer, generation, start, coarse)) = &mut job else { continue };
-        if control.generation() != *generation {
+        let Some(j) = &mut job else { continue };
+        if control.generation() != j.generation {
             job = None; // a newer command is on its way
             continue;
         }
-        if renderer.render_pass(&control, *generation) == PassOutcome::Completed {
-            let film = Arc::new(renderer.snapshot());
-            let secs = start.elapsed().as_secs_f64();
-            let published = Published {
-                generation: *generation,
-                samples_per_sec: film.spp() as f64 * film.pixel_count() as f64 / secs.max(1e-9),
-                noise: relative_noise(&film),
-                render_secs: secs,
-                film,
-                coarse: *coarse,
-            };
-            mailbox.lock().unwrap().latest = Some(published);
-            wake();
+        if j.main.render_pass(&control, j.generation) != PassOutcome::Completed {
+            continue;
         }
+        if let Some(r) = &mut j.reference {
+            if r.render_pass(&control, j.generation) != PassOutcome::Completed {
+                continue;
+            }
+        }
+        let film = Arc::new(j.main.snapshot());
+        let secs = j.start.elapsed().as_secs_f64();
+        let published = Published {
+            generation: j.generation,
+            samples_per_sec: film.spp() as f64 * film.pixel_count() as f64 / secs.max(1e-9),
+            noise: relative_noise(&film),
+            render_secs: secs,
+            film,
+            coarse: j.coarse,
+            reference: j.reference.as_ref().map(|r| Arc::new(r.snapshot())),
+        };
+        mailbox.lock().unwrap().latest = Some(published);
+        wake();
     }
 }
 
@@ -210,8 +244,14 @@ impl WorkerHandle {
 
     /// Asks for a new render; the pass under way is abandoned.
     pub fn render(&self, scene: &SceneFile, coarse: bool) -> u64 {
+        self.render_compare(scene, coarse, false)
+    }
+
+    /// [`WorkerHandle::render`], with the path-traced reference alongside when
+    /// `compare` is set and the scene is in prediction mode.
+    pub fn render_compare(&self, scene: &SceneFile, coarse: bool, compare: bool) -> u64 {
         let generation = self.control.bump();
-        let _ = self.tx.send(Command::Render { scene: Box::new(scene.clone()), coarse, generation });
+        let _ = self.tx.send(Command::Render { scene: Box::new(scene.clone()), coarse, generation, compare });
         generation
     }
 }

@@ -1,0 +1,145 @@
+//! Reference vs prediction: the textures of the side-by-side view and the buffer panel
+//! (low orders, predicted high orders, reference high orders, their error in false
+//! colour with its scale, and the relative bias of CONVENTIONS.md as a number).
+
+use super::worker::Published;
+use crate::eval_cmd::{Image, bias, false_colour};
+use crate::output::ToneMap;
+use eframe::egui;
+use engine::{Buffer, Film};
+
+/// The panels, in order.
+pub const PANELS: [&str; 4] =
+    ["low orders 1 .. k-1", "predicted high orders", "reference high orders", "error |predicted - reference| (high)"];
+
+#[derive(Default)]
+pub struct CompareView {
+    /// What the textures show: (generation, prediction spp, reference spp, exposure bits, buffer).
+    key: Option<(u64, u32, u32, u32, Buffer)>,
+    /// The reference image in the main view's buffer.
+    pub reference: Option<egui::TextureHandle>,
+    panels: [Option<egui::TextureHandle>; 4],
+    /// The error colour scale: yellow at this radiance.
+    error_scale: f32,
+    /// Relative bias of the prediction's full image against the reference's, and the
+    /// noise floor of that number (CONVENTIONS.md; 16x box downscale).
+    pub bias: Option<(f64, f64)>,
+    enlarged: Option<usize>,
+}
+
+fn texture(ctx: &egui::Context, slot: &mut Option<egui::TextureHandle>, name: &str, w: u32, h: u32, rgba: &[u8]) {
+    let image = egui::ColorImage::from_rgba_unmultiplied([w as usize, h as usize], rgba);
+    match slot {
+        Some(t) => t.set(image, egui::TextureOptions::LINEAR),
+        None => *slot = Some(ctx.load_texture(name, image, egui::TextureOptions::LINEAR)),
+    }
+}
+
+fn mean_lit(img: &[[f32; 3]]) -> f32 {
+    let (s, n) = img
+        .iter()
+        .map(|p| (p[0] + p[1] + p[2]) / 3.0)
+        .filter(|v| *v > 0.0)
+        .fold((0.0f64, 0usize), |(s, n), v| (s + v as f64, n + 1));
+    if n == 0 { 0.0 } else { (s / n as f64) as f32 }
+}
+
+impl CompareView {
+    /// Refreshes textures and numbers when a new pass has been published.
+    pub fn update(&mut self, ctx: &egui::Context, p: &Published, tone: ToneMap, exposure: f32, buffer: Buffer) {
+        let Some(reference) = &p.reference else { return };
+        let key = (p.generation, p.film.spp(), reference.spp(), exposure.to_bits(), buffer);
+        if self.key == Some(key) {
+            return;
+        }
+        self.key = Some(key);
+        let (w, h) = (p.film.width(), p.film.height());
+        texture(ctx, &mut self.reference, "nimbus-reference", w, h, &tone.to_rgba8(&reference.mean(buffer), exposure));
+        let (pred_high, ref_high) = (p.film.mean(Buffer::High), reference.mean(Buffer::High));
+        let low = p.film.mean(Buffer::Low);
+        self.error_scale = mean_lit(&ref_high).max(1e-6);
+        let error: Vec<u8> = pred_high
+            .iter()
+            .zip(&ref_high)
+            .flat_map(|(a, b)| {
+                let e = (0..3).map(|c| (a[c] - b[c]).abs()).sum::<f32>() / 3.0;
+                let [r, g, bl] = false_colour(e / self.error_scale);
+                [r, g, bl, 255]
+            })
+            .collect();
+        let images = [
+            tone.to_rgba8(&low, exposure),
+            tone.to_rgba8(&pred_high, exposure),
+            tone.to_rgba8(&ref_high, exposure),
+            error,
+        ];
+        for (i, rgba) in images.iter().enumerate() {
+            texture(ctx, &mut self.panels[i], PANELS[i], w, h, rgba);
+        }
+        self.bias = (reference.spp() > 0 && p.film.spp() > 0).then(|| {
+            let img = |f: &Film| Image { w, h, mean: f.mean(Buffer::Full), var: f.variance_of_mean(Buffer::Full) };
+            let (_, rel, floor) = bias(&img(reference), &img(&p.film));
+            (rel, floor)
+        });
+    }
+
+    /// The side panel: thumbnails (click to enlarge), the error scale, the bias.
+    pub fn panel(&mut self, ui: &mut egui::Ui) {
+        ui.heading("Compare");
+        match self.bias {
+            Some((rel, floor)) => {
+                ui.label(format!("relative bias {:.2} %", 100.0 * rel)).on_hover_text(format!(
+                    "16x box downscale, CONVENTIONS.md; noise alone would show about {:.2} %",
+                    100.0 * floor
+                ));
+            }
+            None => {
+                ui.label("relative bias: waiting for samples");
+            }
+        }
+        egui::ScrollArea::vertical().show(ui, |ui| {
+            let width = ui.available_width().min(240.0);
+            for (i, name) in PANELS.iter().enumerate() {
+                ui.label(*name);
+                if let Some(t) = &self.panels[i] {
+                    let size = t.size_vec2() * (width / t.size_vec2().x);
+                    let r = ui.add(egui::Image::new((t.id(), size)).sense(egui::Sense::click()));
+                    if r.on_hover_text("click to enlarge").clicked() {
+                        self.enlarged = Some(i);
+                    }
+                }
+                if i == 3 {
+                    ui.horizontal(|ui| {
+                        let (rect, _) = ui.allocate_exact_size(egui::vec2(width * 0.6, 10.0), egui::Sense::hover());
+                        for s in 0..32 {
+                            let x0 = rect.min.x + rect.width() * s as f32 / 32.0;
+                            let c = false_colour((s as f32 + 0.5) / 32.0);
+                            ui.painter().rect_filled(
+                                egui::Rect::from_min_max(
+                                    egui::pos2(x0, rect.min.y),
+                                    egui::pos2(x0 + rect.width() / 32.0 + 0.5, rect.max.y),
+                                ),
+                                0.0,
+                                egui::Color32::from_rgb(c[0], c[1], c[2]),
+                            );
+                        }
+                        ui.label(format!("0 .. {:.3}", self.error_scale));
+                    });
+                }
+                ui.add_space(6.0);
+            }
+        });
+        if let Some(i) = self.enlarged {
+            let mut open = true;
+            egui::Window::new(PANELS[i]).open(&mut open).default_size([520.0, 540.0]).show(ui.ctx(), |ui| {
+                if let Some(t) = &self.panels[i] {
+                    let w = ui.available_width();
+                    ui.add(egui::Image::new((t.id(), t.size_vec2() * (w / t.size_vec2().x))));
+                }
+            });
+            if !open {
+                self.enlarged = None;
+            }
+        }
+    }
+}
