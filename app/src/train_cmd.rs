@@ -53,6 +53,10 @@ pub struct TrainGlobalArgs {
     pub test_fraction: f64,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// What the network learns: total (all of L_i, the thesis) or multiple (multiple
+    /// scattering only; the renderer adds single scattering by NEE).
+    #[arg(long, default_value = "total")]
+    pub target: String,
     /// Continue from PREFIX.checkpoint/ (same settings and data).
     #[arg(long)]
     pub resume: bool,
@@ -81,6 +85,8 @@ impl TrainGlobalArgs {
             lr_decay: self.lr_decay,
             test_fraction: self.test_fraction,
             seed: self.seed,
+            target: models::global::TargetKind::parse(&self.target)
+                .with_context(|| format!("--target {}: choose total or multiple", self.target))?,
         };
         cfg.validate()?;
         Ok(cfg)

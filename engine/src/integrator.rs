@@ -142,7 +142,7 @@ impl Integrator {
             FreeFlight::Escaped => out.direct = scene.sky.radiance,
             FreeFlight::Collision { t } => {
                 let k = self.settings.k;
-                self.scatter_from(scene, o + d * t, -d, 1, scene.medium.albedo(), rng, &mut |order, v| {
+                self.scatter_from(scene, o + d * t, -d, 1, scene.medium.albedo(), 1, rng, &mut |order, v| {
                     if order >= k { out.high += v } else { out.low += v }
                 });
             }
@@ -155,12 +155,45 @@ impl Integrator {
     /// model predicts (for a unit sun), and the ground truth it is trained on.
     pub fn in_scattered_radiance(&self, scene: &Scene, x: Vec3, wo: Vec3, rng: &mut Rng) -> Vec3 {
         let mut sum = Vec3::ZERO;
-        self.scatter_from(scene, x, wo, 1, 1.0, rng, &mut |_, v| sum += v);
+        self.scatter_from(scene, x, wo, 1, 1.0, 1, rng, &mut |_, v| sum += v);
+        sum
+    }
+
+    /// Next event estimation toward the sun from the vertex at `x` (order `order`).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn next_event(
+        scene: &Scene,
+        sun: &Sun,
+        x: Vec3,
+        wo: Vec3,
+        beta: f32,
+        order: u32,
+        rng: &mut Rng,
+        add: &mut impl FnMut(u32, Vec3),
+    ) {
+        let wi = sun.sample_wi(rng.uniform2());
+        let f = beta * scene.medium.phase().eval(wo, wi);
+        if f > 0.0 {
+            let tr = scene.medium.transmittance_ratio(x, wi, f32::INFINITY, rng);
+            if tr > 0.0 {
+                add(order, sun.radiance() * (f * tr));
+            }
+        }
+    }
+
+    /// The multiple-scattering part of [`Integrator::in_scattered_radiance`]: orders
+    /// >= 2 counted from `x` (single scattering at `x` left out), what a predictor
+    /// with `predicts_single_scattering() == false` answers.
+    pub fn multiple_scattered_radiance(&self, scene: &Scene, x: Vec3, wo: Vec3, rng: &mut Rng) -> Vec3 {
+        let mut sum = Vec3::ZERO;
+        self.scatter_from(scene, x, wo, 1, 1.0, 2, rng, &mut |_, v| sum += v);
         sum
     }
 
     /// The path from a scattering vertex at `x` (the `order`-th) with outgoing
-    /// direction `wo` and throughput `beta` (albedo of this vertex included).
+    /// direction `wo` and throughput `beta` (albedo of this vertex included); next
+    /// event estimation from orders >= `min_order` only.
     #[inline]
     #[allow(clippy::too_many_arguments)]
     fn scatter_from(
@@ -170,6 +203,7 @@ impl Integrator {
         mut wo: Vec3,
         mut order: u32,
         mut beta: f32,
+        min_order: u32,
         rng: &mut Rng,
         add: &mut impl FnMut(u32, Vec3),
     ) {
@@ -182,8 +216,12 @@ impl Integrator {
             }
             if let Mode::Predict { p } = self.settings.mode {
                 if order == self.settings.k {
-                    // Predict L_i at vertex k, roulette with probability p.
+                    // Predict L_i at vertex k, roulette with probability p. A predictor
+                    // of multiple scattering only gets single scattering by NEE here.
                     if let (Some(pred), Some(sun)) = (&self.predictor, &scene.sun) {
+                        if !pred.predicts_single_scattering() {
+                            Self::next_event(scene, sun, x, wo, beta, order, rng, add);
+                        }
                         if rng.uniform() < p {
                             let li = pred.predict(medium, sun, x, wo);
                             if li.is_finite() && li >= 0.0 {
@@ -194,15 +232,9 @@ impl Integrator {
                     return;
                 }
             }
-            // Next event estimation toward the sun (order `order`).
-            if let Some(sun) = &scene.sun {
-                let wi = sun.sample_wi(rng.uniform2());
-                let f = beta * phase.eval(wo, wi);
-                if f > 0.0 {
-                    let tr = medium.transmittance_ratio(x, wi, f32::INFINITY, rng);
-                    if tr > 0.0 {
-                        add(order, sun.radiance() * (f * tr));
-                    }
+            if order >= min_order {
+                if let Some(sun) = &scene.sun {
+                    Self::next_event(scene, sun, x, wo, beta, order, rng, add);
                 }
             }
             // Russian roulette on throughput.
@@ -217,7 +249,7 @@ impl Integrator {
             let wi = phase.sample(wo, rng.uniform2()).wi;
             match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {
                 FreeFlight::Escaped => {
-                    if !scene.sky.is_black() {
+                    if !scene.sky.is_black() && order >= min_order {
                         add(order, scene.sky.radiance * beta);
                     }
                     return;

@@ -18,6 +18,14 @@ use glam::Vec3;
 pub trait InScatterPredictor: Send + Sync {
     fn predict(&self, medium: &Medium, sun: &Sun, x: Vec3, omega: Vec3) -> f32;
 
+    /// Whether `predict` includes single scattering at `x` (the thesis's target, eq.
+    /// 5.5). A predictor that answers only the multiple-scattering part (orders >= 2
+    /// counted from `x`) returns false, and the integrator then path traces single
+    /// scattering at vertex k by next event estimation before adding the prediction.
+    fn predicts_single_scattering(&self) -> bool {
+        true
+    }
+
     /// A short name for logs and reports.
     fn name(&self) -> &str {
         "predictor"

@@ -123,6 +123,47 @@ pub struct Standardization {
 }
 
 pub const TARGET_TRANSFORM: &str = "ln(1 + L_i / p_HG(g, cos theta))";
+pub const TARGET_TRANSFORM_MULTIPLE: &str = "ln(1 + 4 pi max(0, L_i - p_HG(g, cos theta) exp(-tau_1)))";
+
+/// What the network predicts.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TargetKind {
+    /// The thesis's target: all of L_i, single scattering included, transformed by eqs.
+    /// 5.8-5.9 ([`TARGET_TRANSFORM`]).
+    #[default]
+    Total,
+    /// Multiple scattering only: L_ms = L_i - p_HG(g, cos theta) exp(-tau_1), the
+    /// ground truth minus its exact single-scattering term (tau_1 is the feature toward
+    /// the light, so L_ms follows from the stored data), transformed by
+    /// ln(1 + 4 pi L_ms) ([`TARGET_TRANSFORM_MULTIPLE`]). The renderer path traces single
+    /// scattering at vertex k by NEE and adds the prediction; the peaked part of L_i
+    /// (forward scattering toward a backlit camera) is then never learned. A departure
+    /// from the thesis, see the README.
+    Multiple,
+}
+
+impl TargetKind {
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "total" => Some(TargetKind::Total),
+            "multiple" => Some(TargetKind::Multiple),
+            _ => None,
+        }
+    }
+
+    /// The transform's description, stored in the sidecar and checked on load.
+    pub fn transform(self) -> &'static str {
+        match self {
+            TargetKind::Total => TARGET_TRANSFORM,
+            TargetKind::Multiple => TARGET_TRANSFORM_MULTIPLE,
+        }
+    }
+
+    fn from_transform(s: &str) -> Option<Self> {
+        [TargetKind::Total, TargetKind::Multiple].into_iter().find(|k| k.transform() == s)
+    }
+}
 
 /// The single-scattering phase value of eq. 5.8 from a feature row (g and theta).
 #[inline]
@@ -130,16 +171,38 @@ pub fn single_scattering_phase(features: &[f32]) -> f32 {
     PhaseFunction::HenyeyGreenstein { g: features[1] }.eval_cos(features[2].cos())
 }
 
-/// eqs. 5.8-5.9 (before standardization).
+/// Exact single scattering of a unit light from a feature row: the phase value times
+/// the transmittance toward the light, exp(-tau_1) with tau_1 = exp(-tau_hat_1) - 1.
 #[inline]
-pub fn transform_target(features: &[f32], l_i: f32) -> f32 {
-    (l_i.max(0.0) / single_scattering_phase(features)).ln_1p()
+pub fn single_scattering(features: &[f32]) -> f32 {
+    single_scattering_phase(features) * (1.0 - (-features[4]).exp()).exp()
 }
 
-/// The inverse: L_i from the un-standardized network output.
+/// The transformed target (before standardization) of a measured L_i.
 #[inline]
-pub fn untransform_target(features: &[f32], y: f32) -> f32 {
-    (y.exp_m1() * single_scattering_phase(features)).max(0.0)
+pub fn transform_target(kind: TargetKind, features: &[f32], l_i: f32) -> f32 {
+    match kind {
+        TargetKind::Total => (l_i.max(0.0) / single_scattering_phase(features)).ln_1p(),
+        TargetKind::Multiple => ((l_i - single_scattering(features)).max(0.0) * 4.0 * std::f32::consts::PI).ln_1p(),
+    }
+}
+
+/// The inverse: what the network predicts (L_i, or L_ms for [`TargetKind::Multiple`])
+/// from its un-standardized output.
+#[inline]
+pub fn untransform_target(kind: TargetKind, features: &[f32], y: f32) -> f32 {
+    match kind {
+        TargetKind::Total => (y.exp_m1() * single_scattering_phase(features)).max(0.0),
+        TargetKind::Multiple => (y.exp_m1() / (4.0 * std::f32::consts::PI)).max(0.0),
+    }
+}
+
+/// L_i from the network's un-standardized output (single scattering added back for a
+/// multiple-scattering model): the figure the training report compares.
+#[inline]
+pub fn predicted_l_i(kind: TargetKind, features: &[f32], y: f32) -> f32 {
+    let v = untransform_target(kind, features, y);
+    if kind == TargetKind::Multiple { v + single_scattering(features) } else { v }
 }
 
 /// Everything about a model but its weights.
@@ -371,6 +434,8 @@ pub struct GlobalModel {
     pub sidecar: Sidecar,
     pub mlp: Mlp,
     features: FeatureExtractor,
+    /// What the network predicts (from the sidecar's target transform).
+    target: TargetKind,
 }
 
 thread_local! {
@@ -381,7 +446,8 @@ impl GlobalModel {
     pub fn new(sidecar: Sidecar, mlp: Mlp) -> Self {
         let features = FeatureExtractor::with_set(sidecar.features.direction_set, sidecar.features.n_dirs)
             .expect("layout checked");
-        GlobalModel { sidecar, mlp, features }
+        let target = TargetKind::from_transform(&sidecar.standardization.target).unwrap_or_default();
+        GlobalModel { sidecar, mlp, features, target }
     }
 
     /// Loads `path` (.safetensors) and its sidecar (same name, .json); checks that the
@@ -430,11 +496,12 @@ impl GlobalModel {
         }
         let n_f = sidecar.features.names.len();
         let st = &sidecar.standardization;
-        if st.feature_mean.len() != n_f || st.feature_std.len() != n_f || st.target != TARGET_TRANSFORM {
+        let kind = TargetKind::from_transform(&st.target);
+        if st.feature_mean.len() != n_f || st.feature_std.len() != n_f || kind.is_none() {
             return Err(ModelError::Layout {
                 path: json_path,
                 why: format!(
-                    "standardization has {} means / {} deviations for {n_f} features, target {:?} (the code uses {TARGET_TRANSFORM:?})",
+                    "standardization has {} means / {} deviations for {n_f} features, target {:?} (the code knows {TARGET_TRANSFORM:?} and {TARGET_TRANSFORM_MULTIPLE:?})",
                     st.feature_mean.len(),
                     st.feature_std.len(),
                     st.target
@@ -481,11 +548,15 @@ impl GlobalModel {
         }
         let y = self.mlp.forward(&x, scratch);
         scratch.features = x;
-        untransform_target(raw, y * st.target_std + st.target_mean)
+        untransform_target(self.target, raw, y * st.target_std + st.target_mean)
     }
 
     pub fn feature_extractor(&self) -> &FeatureExtractor {
         &self.features
+    }
+
+    pub fn target(&self) -> TargetKind {
+        self.target
     }
 }
 
@@ -498,6 +569,10 @@ impl InScatterPredictor for GlobalModel {
         self.features.extract_grid(medium, sun.direction(), x, omega, &mut feat[..n]);
         let v = SCRATCH.with(|s| self.predict_features(&feat[..n], &mut s.borrow_mut()));
         if v.is_finite() { v } else { 0.0 }
+    }
+
+    fn predicts_single_scattering(&self) -> bool {
+        self.target == TargetKind::Total
     }
 
     fn name(&self) -> &str {
@@ -570,6 +645,10 @@ impl InScatterPredictor for BoundGlobalModel {
         self.features(medium, x, omega, &mut feat[..n]);
         let v = SCRATCH.with(|s| self.model.predict_features(&feat[..n], &mut s.borrow_mut()));
         if v.is_finite() { v } else { 0.0 }
+    }
+
+    fn predicts_single_scattering(&self) -> bool {
+        self.model.target == TargetKind::Total
     }
 
     fn name(&self) -> &str {

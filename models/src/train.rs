@@ -7,7 +7,7 @@
 use crate::datagen::Dataset;
 use crate::global::{
     Activation, FeatureLayout, GlobalModel, MODEL_FORMAT, MODEL_FORMAT_VERSION, Mlp, Sidecar, Standardization,
-    TARGET_TRANSFORM, transform_target, untransform_target,
+    TargetKind, predicted_l_i, transform_target,
 };
 use crate::npy::write_bytes_atomically;
 use candle_core::{DType, Device, Tensor, Var};
@@ -38,6 +38,9 @@ pub struct TrainConfig {
     pub lr_decay: f64,
     pub test_fraction: f64,
     pub seed: u64,
+    /// What the network learns: all of L_i (the thesis) or multiple scattering only.
+    #[serde(default)]
+    pub target: TargetKind,
 }
 
 impl Default for TrainConfig {
@@ -52,6 +55,7 @@ impl Default for TrainConfig {
             lr_decay: 0.8,
             test_fraction: 0.2,
             seed: 1,
+            target: TargetKind::Total,
         }
     }
 }
@@ -209,7 +213,7 @@ fn prepare(data: &TrainData, cfg: &TrainConfig) -> Result<Prepared, TrainError> 
     let mut y_all = vec![0.0f32; data.len()];
     for i in 0..data.len() {
         let f = &data.features[i * n_f..(i + 1) * n_f];
-        let y = transform_target(f, data.l_i[i]);
+        let y = transform_target(cfg.target, f, data.l_i[i]);
         if y.is_finite() && f.iter().all(|v| v.is_finite()) && data.l_i[i] >= 0.0 {
             y_all[i] = y;
             rows.push(i);
@@ -245,7 +249,7 @@ fn prepare(data: &TrainData, cfg: &TrainConfig) -> Result<Prepared, TrainError> 
     let stats = Standardization {
         feature_mean: mean.iter().map(|m| (m / n) as f32).collect(),
         feature_std: mean.iter().zip(&sq).map(|(m, q)| std_of(*m, *q) as f32).collect(),
-        target: TARGET_TRANSFORM.into(),
+        target: cfg.target.transform().into(),
         target_mean: (ym / n) as f32,
         target_std: std_of(ym, ysq) as f32,
     };
@@ -575,7 +579,7 @@ pub fn train(
     for (i, &l) in prep.l_test.iter().enumerate() {
         let raw = &prep.raw_test[i * n_f..(i + 1) * n_f];
         let y = mlp.forward(&prep.x_test[i * n_f..(i + 1) * n_f], &mut scratch);
-        let pred = untransform_target(raw, y * prep.stats.target_std + prep.stats.target_mean);
+        let pred = predicted_l_i(cfg.target, raw, y * prep.stats.target_std + prep.stats.target_mean);
         if l > 0.0 {
             rel.push(((pred - l) / l).abs() as f64);
         }

@@ -1,10 +1,14 @@
 //! Training, model files and the fast evaluator of the global model.
 
 use candle_core::{Device, Tensor};
+use engine::InScatterPredictor;
 use engine::Rng;
 use models::datagen::{GlobalSpec, Shard};
 use models::directions::DirectionSetKind;
-use models::global::{Activation, FeatureLayout, GlobalModel, single_scattering_phase};
+use models::global::{
+    Activation, FeatureLayout, GlobalModel, TargetKind, predicted_l_i, single_scattering, single_scattering_phase,
+    transform_target,
+};
 use models::train::{EpochRecord, Network, Optimizer, Quiet, TrainConfig, TrainData, TrainObserver, train};
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -205,5 +209,41 @@ fn an_interrupted_training_resumes_to_the_same_weights() {
         let (a, b) = (full.predict_features(row, &mut s1), resumed.predict_features(row, &mut s2));
         assert!((a - b).abs() <= 1e-5 * a.abs().max(1e-3), "{a} vs {b}");
     }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The multiple-scattering target: a data set whose L_i is exact single scattering
+/// plus a known smooth multiple-scattering part trains to that part, the model file
+/// says what it predicts (so the renderer adds single scattering by NEE), and the
+/// training report's relative error is of L_i with single scattering added back.
+#[test]
+fn multiple_scattering_target_trains_and_round_trips() {
+    let (mut data, f) = smooth_data(6000, 3);
+    let n_f = data.n_features();
+    for i in 0..data.len() {
+        let row = &data.features[i * n_f..(i + 1) * n_f];
+        let ms = f(row).exp_m1() / (4.0 * std::f32::consts::PI);
+        data.l_i[i] = single_scattering(row) + ms;
+        // The transform recovers f exactly (up to f32 rounding).
+        let y = transform_target(TargetKind::Multiple, row, data.l_i[i]);
+        assert!((y - f(row)).abs() < 1e-3 * f(row).abs().max(1.0), "{y} vs {}", f(row));
+        assert!((predicted_l_i(TargetKind::Multiple, row, y) - data.l_i[i]).abs() <= 1e-4 * data.l_i[i].max(1e-3));
+    }
+    let cfg = TrainConfig {
+        hidden: vec![32, 16],
+        epochs: 40,
+        batch: 100,
+        lr: 3e-3,
+        lr_decay: 0.95,
+        target: TargetKind::Multiple,
+        ..Default::default()
+    };
+    let dir = temp("multiple");
+    let (_, report) = train(&data, &cfg, &dir.join("m"), false, "test", "test", &Quiet).unwrap();
+    assert!(report.test_mse < 0.02 * report.test_target_variance, "{report:?}");
+    assert!(report.rel_error_median < 0.05, "{report:?}");
+    let model = GlobalModel::load(&dir.join("m.safetensors")).unwrap();
+    assert_eq!(model.target(), TargetKind::Multiple);
+    assert!(!model.predicts_single_scattering());
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -191,6 +191,8 @@ fn deterministic_across_thread_counts() {
 struct PathTracedPredictor {
     integrator: Integrator,
     scene: Scene,
+    /// Answer orders >= 2 only (single scattering left to the integrator's NEE).
+    multiple_only: bool,
 }
 
 impl InScatterPredictor for PathTracedPredictor {
@@ -201,12 +203,31 @@ impl InScatterPredictor for PathTracedPredictor {
             .chain(omega.to_array().iter())
             .fold(0u64, |a, v| engine::rng::mix64(a ^ v.to_bits() as u64));
         let mut rng = Rng::new(h, 0, 0);
-        self.integrator.in_scattered_radiance(&self.scene, x, omega, &mut rng).x
+        if self.multiple_only {
+            self.integrator.multiple_scattered_radiance(&self.scene, x, omega, &mut rng).x
+        } else {
+            self.integrator.in_scattered_radiance(&self.scene, x, omega, &mut rng).x
+        }
+    }
+
+    fn predicts_single_scattering(&self) -> bool {
+        !self.multiple_only
     }
 }
 
 #[test]
 fn prediction_mode_is_unbiased_with_an_exact_predictor() {
+    prediction_with_exact_predictor(false);
+}
+
+/// The same with a predictor of multiple scattering only: the integrator adds single
+/// scattering at vertex k by NEE, and the sum is still unbiased.
+#[test]
+fn prediction_of_multiple_scattering_plus_nee_is_unbiased() {
+    prediction_with_exact_predictor(true);
+}
+
+fn prediction_with_exact_predictor(multiple_only: bool) {
     let sun = Sun::new(Vec3::new(0.0, -1.0, 0.0), Vec3::new(2.0, 2.0, 2.0), 0.0).unwrap();
     let scene =
         Arc::new(cumulus_scene(32, 10.0, 0.9, PhaseFunction::HenyeyGreenstein { g: 0.6 }, Some(sun), Vec3::ZERO, 16));
@@ -215,6 +236,7 @@ fn prediction_mode_is_unbiased_with_an_exact_predictor() {
     let predictor: Arc<dyn InScatterPredictor> = Arc::new(PathTracedPredictor {
         integrator: Integrator::new(RenderSettings::default(), None).unwrap(),
         scene: unit_scene,
+        multiple_only,
     });
     let k = 2;
     let reference = render(&scene, RenderSettings { seed: 1, k, ..Default::default() }, None, 256);
