@@ -153,6 +153,17 @@ pub enum BenchCommand {
     Datagen(crate::datagen_cmd::BenchDatagenArgs),
     /// Nanoseconds per prediction of the global model, network alone and with features.
     Predict(crate::train_cmd::BenchPredictArgs),
+    /// The window's responsiveness without a window: milliseconds from a parameter
+    /// change to the first image the render worker publishes.
+    #[cfg(feature = "gui")]
+    Latency(BenchLatencyArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct BenchLatencyArgs {
+    /// Repetitions per kind of change (the median is reported).
+    #[arg(long, default_value_t = 9)]
+    pub reps: u32,
 }
 
 #[derive(Args, Debug)]
@@ -212,6 +223,8 @@ pub fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench { which: BenchCommand::Datagen(args) }) => crate::datagen_cmd::bench_datagen(args),
         Some(Command::Datagen { which }) => crate::datagen_cmd::datagen(which),
         Some(Command::Bench { which: BenchCommand::Predict(args) }) => crate::train_cmd::bench_predict(args),
+        #[cfg(feature = "gui")]
+        Some(Command::Bench { which: BenchCommand::Latency(args) }) => bench_latency(args),
         Some(Command::Train { which }) => crate::train_cmd::train(which),
         Some(Command::Eval(args)) => crate::eval_cmd::eval(&args).map(|_| ()),
     }
@@ -449,4 +462,93 @@ pub fn peak_resident_bytes() -> Option<u64> {
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kb * 1024)
+}
+
+/// Median milliseconds from a change to the first published image, for the kinds of
+/// change an artist makes, on the window's default scene (256x256, cumulus 96^3).
+#[cfg(feature = "gui")]
+fn bench_latency(args: BenchLatencyArgs) -> Result<()> {
+    use crate::gui::worker::WorkerHandle;
+    let worker = WorkerHandle::start(|| {});
+    let base = crate::gui::default_scene();
+    let first_image = |scene: &SceneFile, coarse: bool| -> Result<f64> {
+        let t = std::time::Instant::now();
+        let g = worker.render(scene, coarse);
+        loop {
+            {
+                let mb = worker.mailbox.lock().unwrap();
+                if mb.latest.as_ref().is_some_and(|p| p.generation == g) {
+                    return Ok(t.elapsed().as_secs_f64() * 1e3);
+                }
+                if let Some((eg, e)) = &mb.error {
+                    if *eg == g && !e.contains("falls back") {
+                        bail!("{e}");
+                    }
+                }
+            }
+            if t.elapsed().as_secs() > 120 {
+                bail!("no image after 120 s");
+            }
+            std::thread::sleep(std::time::Duration::from_micros(200));
+        }
+    };
+    let mut predict = base.clone();
+    predict.render.mode = "predict".into();
+    let changes: Vec<(&str, Box<dyn Fn(&SceneFile, u32) -> (SceneFile, bool)>)> = vec![
+        (
+            "camera orbit (no rebuild)",
+            Box::new(|s, i| {
+                let mut s = s.clone();
+                s.camera.fov_y_deg = 30.0 + (i % 2) as f32;
+                (s, false)
+            }),
+        ),
+        (
+            "density rho",
+            Box::new(|s, i| {
+                let mut s = s.clone();
+                s.medium.rho = 40.0 + (i % 2) as f32;
+                (s, false)
+            }),
+        ),
+        (
+            "cloud shape while dragging (coarse 48^3)",
+            Box::new(|s, i| {
+                let mut s = s.clone();
+                s.seed = i as u64;
+                s.grid.builtin = None;
+                s.grid.preset = Some(["scene-a", "scene-b"][i as usize % 2].into());
+                (s, true)
+            }),
+        ),
+        (
+            "cloud shape released (full 96^3)",
+            Box::new(|s, i| {
+                let mut s = s.clone();
+                s.grid.builtin = None;
+                s.grid.preset = Some(["scene-a", "scene-b"][i as usize % 2].into());
+                (s, false)
+            }),
+        ),
+    ];
+    println!(
+        "# nimbus bench latency: ms from a change to the first image (median of {}), {} threads",
+        args.reps,
+        rayon::current_num_threads()
+    );
+    println!("| change | path tracing | prediction (k 2) |");
+    println!("|---|---|---|");
+    for (name, change) in &changes {
+        let mut cols = vec![];
+        for scene in [&base, &predict] {
+            first_image(scene, false)?;
+            let mut times: Vec<f64> = (0..args.reps.max(1))
+                .map(|i| first_image(&change(scene, i).0, change(scene, i).1))
+                .collect::<Result<_>>()?;
+            times.sort_by(f64::total_cmp);
+            cols.push(times[times.len() / 2]);
+        }
+        println!("| {name} | {:.0} | {:.0} |", cols[0], cols[1]);
+    }
+    Ok(())
 }

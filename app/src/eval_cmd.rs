@@ -266,7 +266,8 @@ pub fn relative_rmse(img: &[[f32; 3]], reference: &[[f32; 3]], mask: &[bool]) ->
             n += 1;
         }
     }
-    if n == 0 || r <= 0.0 { 0.0 } else { (se / n as f64).sqrt() / (r / n as f64) }
+    // No lit pixel: no preview can be judged.
+    if n == 0 || r <= 0.0 { f64::INFINITY } else { (se / n as f64).sqrt() / (r / n as f64) }
 }
 
 /// What a tracked render returns.
@@ -338,9 +339,20 @@ fn read_image_npy(path: &Path, w: u32, h: u32, n: usize) -> Result<Vec<Vec<[f32;
     Ok(layers)
 }
 
+/// The cache name of one prediction cell: everything its numbers depend on (the model
+/// by a hash of its file path, or "shipped").
 fn cell_key(key: &str, k: u32, args: &EvalArgs) -> String {
     let p = if args.auto_p { "auto".to_string() } else { args.p.to_string() };
-    format!("{key}_k{k}_p{p}_spp{}_ref{}", args.spp, args.spp_ref)
+    let model = match &args.model {
+        Some(path) => {
+            use std::hash::{Hash, Hasher};
+            let mut h = std::collections::hash_map::DefaultHasher::new();
+            std::path::absolute(path).unwrap_or_else(|_| path.clone()).hash(&mut h);
+            format!("{:016x}", h.finish())
+        }
+        None => "shipped".into(),
+    };
+    format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}_{model}", args.spp, args.spp_ref, args.field_nodes)
 }
 
 fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
@@ -381,8 +393,8 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
     if !(args.p > 0.0 && args.p <= 1.0) {
         bail!("--p {}: must lie in (0, 1]", args.p);
     }
-    if args.spp == 0 || args.spp_ref == 0 || args.size == 0 {
-        bail!("--spp, --spp-ref and --size must be at least 1");
+    if args.spp < 2 || args.spp_ref < 2 || args.size == 0 {
+        bail!("--spp and --spp-ref must be at least 2 (variances need two samples), --size at least 1");
     }
     let model = match &args.model {
         Some(p) => Arc::new(models::global::GlobalModel::load(p)?),

@@ -59,49 +59,62 @@ pub struct AutoP {
 }
 
 /// Chooses the prediction probability p that minimizes TTUV (the thesis, section 5.4,
-/// proposes choosing p this way). With X = L + H (low orders plus the predicted
-/// contribution), rouletting H with probability p gives per-sample variance
-/// V(p) = V1 + B (1/p - 1) with V1 = Var(X) at p = 1 and B = E[H^2], and cost per pass
-/// C(p) = c0 + p c1. TTUV is proportional to V(p) C(p) = (A + B/p)(c0 + p c1) with
-/// A = V1 - B, whose minimum is at p* = sqrt(B c0 / (A c1)), clamped to [0.05, 1]
-/// (p = 1 when A <= 0). V1 and B come from `pilot_spp` passes at p = 1, c0 and c1
-/// from those passes' time and as many at p = 0.1 (pixel means over lit pixels; the
-/// pilot uses its own seed and is discarded).
+/// proposes choosing p this way). Rouletting the predicted contribution H with
+/// probability p gives per-sample variance V(p) = V1 + B (1/p - 1), with V1 the variance
+/// at p = 1 and B = E[H^2], and cost per pass C(p) = c0 + p c1. TTUV is proportional to
+/// V(p) C(p) = (A + B/p)(c0 + p c1) with A = V1 - B, whose minimum is at
+/// p* = sqrt(B c0 / (A c1)), clamped to [0.05, 1] (p = 1 when A <= 0). Two pilots of
+/// `pilot_spp` passes, at p = 1 and p = 0.1 (after one warm-up pass), give V1 and
+/// V(0.1) = V1 + 9 B, so B = (V(0.1) - V1) / 9 (this also holds when the high buffer
+/// carries NEE that is not rouletted, as with multiple-scattering models), and the
+/// two pass times give c0 and c1. Variances are pixel means over lit pixels; the
+/// pilots use their own seed and are discarded.
 pub fn auto_p(
     scene: Arc<Scene>,
     settings: engine::RenderSettings,
     predictor: Arc<dyn engine::InScatterPredictor>,
     pilot_spp: u32,
     control: &RenderControl,
-) -> Result<AutoP, engine::integrator::IntegratorError> {
+) -> anyhow::Result<AutoP> {
     use engine::{Buffer, Mode};
-    let pilot = |p: f32| {
+    let pilot = |p: f32, spp: u32| -> anyhow::Result<RenderOutcome> {
         let s = engine::RenderSettings { seed: settings.seed ^ 0x5eed_a070, mode: Mode::Predict { p }, ..settings };
-        render_spp(scene.clone(), Integrator::new(s, Some(predictor.clone()))?, pilot_spp.max(2), control, |_| {})
+        let out = render_spp(scene.clone(), Integrator::new(s, Some(predictor.clone()))?, spp, control, |_| {})?;
+        if out.stopped {
+            anyhow::bail!("stopped while choosing p");
+        }
+        Ok(out)
     };
-    let full = pilot(1.0)?;
-    let few = pilot(0.1)?;
-    let n = full.film.spp() as f64;
-    let (mean, var) = (full.film.mean(Buffer::Full), full.film.variance_of_mean(Buffer::Full));
-    let (hmean, hvar) = (full.film.mean(Buffer::High), full.film.variance_of_mean(Buffer::High));
-    let (mut v1, mut b, mut lit) = (0.0f64, 0.0f64, 0usize);
-    for i in 0..mean.len() {
-        if mean[i].iter().sum::<f32>() <= 0.0 {
-            continue;
+    pilot(1.0, 1)?; // warm-up: caches, page faults, thread start
+    let spp = pilot_spp.max(2);
+    let (full, few) = (pilot(1.0, spp)?, pilot(0.1, spp)?);
+    // Mean over lit pixels of the per-sample variance (sample variance = variance of
+    // the mean times spp).
+    let per_sample_variance = |f: &Film| {
+        let (mean, var) = (f.mean(Buffer::Full), f.variance_of_mean(Buffer::Full));
+        let n = f.spp() as f64;
+        let (mut v, mut lit) = (0.0f64, 0usize);
+        for (m, s) in mean.iter().zip(&var) {
+            if m.iter().sum::<f32>() > 0.0 {
+                lit += 1;
+                v += s.iter().map(|x| *x as f64).sum::<f64>() * n / 3.0;
+            }
         }
-        lit += 1;
-        for c in 0..3 {
-            v1 += var[i][c] as f64 * n / 3.0;
-            // E[H^2] = sample variance (n - 1) / n + mean^2
-            b += (hvar[i][c] as f64 * (n - 1.0) + (hmean[i][c] as f64).powi(2)) / 3.0;
-        }
-    }
-    let lit = lit.max(1) as f64;
-    let (v1, b) = (v1 / lit, b / lit);
-    let (t1, t01) = (full.render_secs / n, few.render_secs / few.film.spp().max(1) as f64);
+        v / lit.max(1) as f64
+    };
+    let (v1, v01) = (per_sample_variance(&full.film), per_sample_variance(&few.film));
+    let b = ((v01 - v1) / 9.0).max(0.0);
+    let (t1, t01) = (full.render_secs / spp as f64, few.render_secs / spp as f64);
     let c1 = ((t1 - t01) / 0.9).max(1e-9);
     let c0 = (t1 - c1).max(1e-9);
     let a = v1 - b;
-    let p = if a <= 0.0 { 1.0 } else { ((b * c0) / (a * c1)).sqrt().clamp(0.05, 1.0) as f32 };
+    // No roulette variance: predict as rarely as allowed; all variance from roulette: always.
+    let p = if b <= 0.0 {
+        0.05
+    } else if a <= 0.0 {
+        1.0
+    } else {
+        ((b * c0) / (a * c1)).sqrt().clamp(0.05, 1.0) as f32
+    };
     Ok(AutoP { p, v1, b, c0, c1 })
 }

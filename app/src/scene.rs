@@ -502,14 +502,40 @@ impl SceneFile {
     /// render: it falls back to path tracing and returns a warning naming the file
     /// and the problem.
     pub fn integrator(&self, scene: &Scene, max_nodes: u32) -> Result<IntegratorSetup, SceneError> {
+        self.integrator_cached(scene, max_nodes, &mut PredictorCache::default())
+    }
+
+    /// [`SceneFile::integrator`], reusing the bound model of `cache` when the cloud,
+    /// rho, sun direction, model and field size are the same (camera, k, p, albedo or
+    /// g changes then cost nothing), and leaving the new one there.
+    pub fn integrator_cached(
+        &self,
+        scene: &Scene,
+        max_nodes: u32,
+        cache: &mut PredictorCache,
+    ) -> Result<IntegratorSetup, SceneError> {
         if self.render.mode != "predict" {
             return Ok(IntegratorSetup { integrator: self.integrator_with(None)?, warning: None });
         }
         let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("prediction mode needs a sun".into()))?;
+        let key = PredictorKey {
+            grid: Arc::as_ptr(scene.medium.grid()) as usize,
+            rho: scene.medium.rho().to_bits(),
+            sun: sun.direction().to_array().map(f32::to_bits),
+            model: self.model_path(),
+            nodes: max_nodes,
+        };
+        if let Some((k, bound)) = &cache.last {
+            if *k == key {
+                let predictor: Arc<dyn InScatterPredictor> = bound.clone();
+                return Ok(IntegratorSetup { integrator: self.integrator_with(Some(predictor))?, warning: None });
+            }
+        }
         match self.load_model() {
             Ok(model) => {
-                let bound = BoundGlobalModel::new(model, &scene.medium, sun, max_nodes);
-                Ok(IntegratorSetup { integrator: self.integrator_with(Some(Arc::new(bound)))?, warning: None })
+                let bound = Arc::new(BoundGlobalModel::new(model, &scene.medium, sun, max_nodes));
+                cache.last = Some((key, bound.clone()));
+                Ok(IntegratorSetup { integrator: self.integrator_with(Some(bound))?, warning: None })
             }
             Err(e) => {
                 let mut reference = self.clone();
@@ -520,6 +546,35 @@ impl SceneFile {
                 })
             }
         }
+    }
+}
+
+/// What a bound model depends on (the grid by identity: a cached grid is shared).
+#[derive(Clone, Debug, PartialEq)]
+struct PredictorKey {
+    grid: usize,
+    rho: u32,
+    sun: [u32; 3],
+    model: Option<PathBuf>,
+    nodes: u32,
+}
+
+/// The last bound model (see [`SceneFile::integrator_cached`]). Holding it keeps its
+/// grid alive, so the grid's address cannot be reused by another cloud meanwhile.
+#[derive(Default)]
+pub struct PredictorCache {
+    last: Option<(PredictorKey, Arc<BoundGlobalModel>)>,
+}
+
+impl PredictorCache {
+    /// Whether the cache holds a model bound for `scene` with `max_nodes`.
+    pub fn has(&self, scene: &Scene, max_nodes: u32) -> bool {
+        self.last.as_ref().is_some_and(|(k, _)| {
+            k.grid == Arc::as_ptr(scene.medium.grid()) as usize
+                && k.rho == scene.medium.rho().to_bits()
+                && scene.sun.is_some_and(|s| k.sun == s.direction().to_array().map(f32::to_bits))
+                && k.nodes == max_nodes
+        })
     }
 }
 

@@ -134,15 +134,10 @@ fn sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing: Vec3, d: Vec3) ->
     let shift_b = h * d[b] / spacing[b];
     let shift_c = h * d[c] / spacing[c];
     let na = n[a];
-    // Slices in the order rays reach them last-first: the exit slice first.
-    let order: Box<dyn Iterator<Item = u32>> = if d[a] > 0.0 { Box::new((0..na).rev()) } else { Box::new(0..na) };
-    let mut first = true;
-    for s in order {
-        if first {
-            // Rays from the exit slice leave the support at once: tau = 0.
-            first = false;
-            continue;
-        }
+    // Slices from the exit side inward; the exit slice itself keeps tau = 0 (rays from
+    // it leave the support at once).
+    for step in 1..na {
+        let s = if d[a] > 0.0 { na - 1 - step } else { step };
         let s_up = if d[a] > 0.0 { s + 1 } else { s - 1 };
         for j in 0..n[c] {
             for i in 0..n[b] {

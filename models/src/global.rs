@@ -327,9 +327,15 @@ mod avx2 {
     use super::{Activation, Dense};
     use std::arch::x86_64::*;
 
+    /// Outputs b .. b + 8 NV of one layer.
+    ///
+    /// # Safety
+    /// The CPU has AVX2 and FMA, b + 8 NV <= layer.stride, x.len() >= layer.inputs,
+    /// y.len() >= layer.stride (and the layer was made by `Dense::new`, so w holds
+    /// inputs * stride values and b holds stride values).
     #[target_feature(enable = "avx2,fma")]
     #[inline]
-    fn block<const NV: usize>(layer: &Dense, b: usize, x: &[f32], y: &mut [f32]) {
+    unsafe fn block<const NV: usize>(layer: &Dense, b: usize, x: &[f32], y: &mut [f32]) {
         let s = layer.stride;
         debug_assert!(b + 8 * NV <= s && x.len() >= layer.inputs && layer.w.len() >= layer.inputs * s && y.len() >= s);
         // SAFETY: every load reads w[i * s + b .. i * s + b + 8 NV] with i < inputs and
@@ -359,12 +365,15 @@ mod avx2 {
         let s = layer.stride;
         assert!(x.len() >= layer.inputs && y.len() >= s);
         let mut b = 0;
+        // SAFETY: this function runs only with AVX2 + FMA (its target features), the
+        // assert above bounds x and y, and every block ends at or before s (a multiple
+        // of 16).
         while b + 64 <= s {
-            block::<8>(layer, b, x, y);
+            unsafe { block::<8>(layer, b, x, y) };
             b += 64;
         }
         while b < s {
-            block::<2>(layer, b, x, y); // s is a multiple of 16
+            unsafe { block::<2>(layer, b, x, y) };
             b += 16;
         }
         if let Some(a) = act {
@@ -419,6 +428,12 @@ impl Mlp {
         forward_generic(self, x, scratch)
     }
 
+    /// The portable forward pass (what CPUs without AVX2 + FMA run), for tests.
+    pub fn forward_portable(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
+        self.ensure(scratch);
+        forward_generic(self, x, scratch)
+    }
+
     /// Batched entry point: `xs` holds rows of n_inputs values, one output per row.
     pub fn forward_batch(&self, xs: &[f32], out: &mut [f32], scratch: &mut Scratch) {
         let n = self.n_inputs();
@@ -446,7 +461,8 @@ impl GlobalModel {
     pub fn new(sidecar: Sidecar, mlp: Mlp) -> Self {
         let features = FeatureExtractor::with_set(sidecar.features.direction_set, sidecar.features.n_dirs)
             .expect("layout checked");
-        let target = TargetKind::from_transform(&sidecar.standardization.target).unwrap_or_default();
+        let target = TargetKind::from_transform(&sidecar.standardization.target)
+            .expect("the sidecar's target transform is one this code knows (checked by from_bytes)");
         GlobalModel { sidecar, mlp, features, target }
     }
 

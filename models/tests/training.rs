@@ -139,6 +139,9 @@ fn fast_evaluator_matches_candle_and_files_round_trip() {
             assert_eq!(one, batch[i]);
             let tol = 1e-5 * candle[i].abs().max(1.0);
             assert!((one - candle[i]).abs() <= tol, "{act:?} row {i}: {one} vs {}", candle[i]);
+            // The portable path (CPUs without AVX2) agrees too.
+            let portable = mlp.forward_portable(&xs[i * 68..(i + 1) * 68], &mut scratch);
+            assert!((portable - candle[i]).abs() <= tol, "{act:?} row {i}: portable {portable} vs {}", candle[i]);
         }
     }
 }

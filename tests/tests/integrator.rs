@@ -298,3 +298,29 @@ fn cancelled_passes_leave_the_film_untouched() {
     assert_eq!(r.render_pass(&control, control.generation()), engine::PassOutcome::Completed);
     assert_eq!(r.spp(), after.spp() + 1);
 }
+
+/// A constant predictor, as cheap as a prediction can be.
+struct ConstantPredictor(f32);
+
+impl InScatterPredictor for ConstantPredictor {
+    fn predict(&self, _medium: &Medium, _sun: &Sun, _x: Vec3, _omega: Vec3) -> f32 {
+        self.0
+    }
+}
+
+/// Automatic p at the two ends of its rule: a predictor that contributes nothing adds
+/// no roulette variance, so p goes to its floor; a free predictor whose contribution
+/// carries the image costs nothing to call, so p goes to 1.
+#[test]
+fn automatic_p_follows_variance_and_cost() {
+    let sun = Sun::new(Vec3::NEG_Y, Vec3::ONE, 0.0).unwrap();
+    let scene =
+        Arc::new(cumulus_scene(32, 20.0, 1.0, PhaseFunction::HenyeyGreenstein { g: 0.85 }, Some(sun), Vec3::ZERO, 24));
+    let settings = RenderSettings { seed: 3, k: 1, mode: Mode::Predict { p: 0.5 }, ..Default::default() };
+    let control = RenderControl::new();
+    let zero =
+        app::progressive::auto_p(scene.clone(), settings, Arc::new(ConstantPredictor(0.0)), 8, &control).unwrap();
+    assert_eq!(zero.p, 0.05, "{zero:?}");
+    let one = app::progressive::auto_p(scene, settings, Arc::new(ConstantPredictor(1.0)), 8, &control).unwrap();
+    assert!(one.b > 0.0 && one.p == 1.0, "{one:?}");
+}

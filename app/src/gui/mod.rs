@@ -646,7 +646,6 @@ impl eframe::App for NimbusApp {
     }
 }
 
-/// Opens the window; returns when it is closed.
 /// Draws a texture into `rect`, scaled to fit and centred, with a caption on top.
 fn paint_fitted(ui: &egui::Ui, t: &egui::TextureHandle, rect: egui::Rect, caption: &str) {
     let size = t.size_vec2();
@@ -665,6 +664,7 @@ fn paint_fitted(ui: &egui::Ui, t: &egui::TextureHandle, rect: egui::Rect, captio
     }
 }
 
+/// Opens the window; returns when it is closed.
 pub fn run() -> anyhow::Result<()> {
     let options = eframe::NativeOptions {
         viewport: egui::ViewportBuilder::default().with_inner_size([1180.0, 760.0]).with_title("Nimbus"),

@@ -3,7 +3,7 @@
 //! UI thread. Every change bumps the shared generation counter, so the pass under way
 //! stops at its next tile, and the worker starts over with the new snapshot.
 
-use crate::scene::SceneFile;
+use crate::scene::{PredictorCache, SceneFile};
 use engine::{Buffer, DensityGrid, Film, PassOutcome, RenderControl, Renderer};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
 use std::sync::{Arc, Mutex};
@@ -47,6 +47,40 @@ struct Job {
     generation: u64,
     start: Instant,
     coarse: bool,
+    /// Prediction with a coarse depth field while the full one was not built yet:
+    /// after the first pass the full field is built and the render starts over with it.
+    upgrade: Option<Box<SceneFile>>,
+}
+
+/// Depth-field nodes per axis while a slider moves or before the full field is ready
+/// (a few tens of milliseconds to build, against about a second for the full field).
+pub const COARSE_FIELD_NODES: u32 = 24;
+
+/// Builds the renderers of `scene` on `grid`: the scene's own and, in compare mode
+/// with prediction, the path-traced reference (its own seed). Returns them with the
+/// model's fallback warning, if any.
+fn build_job(
+    scene: &SceneFile,
+    grid: Arc<DensityGrid>,
+    nodes: u32,
+    compare: bool,
+    cache: &mut PredictorCache,
+) -> Result<(Renderer, Option<Renderer>, Option<String>), String> {
+    let s = scene.build_scene(Some(grid)).map_err(|e| e.to_string())?;
+    let setup = scene.integrator_cached(&s, nodes, cache).map_err(|e| e.to_string())?;
+    let predicting = matches!(setup.integrator.settings().mode, engine::Mode::Predict { .. });
+    let s = Arc::new(s);
+    let reference = if compare && predicting {
+        let mut rs = scene.clone();
+        rs.render.mode = "reference".into();
+        rs.seed = rs.seed.wrapping_add(1);
+        let integ = rs.integrator_with(None).map_err(|e| e.to_string())?;
+        Some(Renderer::new(s.clone(), integ).map_err(|e| e.to_string())?)
+    } else {
+        None
+    };
+    let r = Renderer::new(s, setup.integrator).map_err(|e| e.to_string())?;
+    Ok((r, reference, setup.warning))
 }
 
 /// Shared between the worker and the UI.
@@ -92,6 +126,9 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
     // not rebuild it.
     let mut cache: Option<(String, Arc<DensityGrid>)> = None;
     let mut job: Option<Job> = None;
+    // The last model bound to a cloud and sun, so camera changes do not rebuild its
+    // depth field.
+    let mut predictors = PredictorCache::default();
     loop {
         // Take the newest command; block only when idle.
         let mut next = None;
@@ -136,27 +173,27 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                     g
                 }
             };
+            // The full depth field if it is cached (camera, k, p changes), else a coarse
+            // one now and the full one after the first pass.
+            let full_nodes = models::depth_field::DEFAULT_MAX_NODES;
+            let mut upgrade = None;
             let built = grid.map_err(|e| e.to_string()).and_then(|g| {
-                let s = scene.build_scene(Some(g)).map_err(|e| e.to_string())?;
-                // A coarse depth field while a slider moves: built in a fraction of the time.
-                let nodes = if coarse { COARSE_RESOLUTION / 2 } else { models::depth_field::DEFAULT_MAX_NODES };
-                let setup = scene.integrator(&s, nodes).map_err(|e| e.to_string())?;
-                let predicting = matches!(setup.integrator.settings().mode, engine::Mode::Predict { .. });
-                let s = Arc::new(s);
-                let reference = if compare && predicting {
-                    let mut rs = (*scene).clone();
-                    rs.render.mode = "reference".into();
-                    rs.seed = rs.seed.wrapping_add(1);
-                    let integ = rs.integrator_with(None).map_err(|e| e.to_string())?;
-                    Some(Renderer::new(s.clone(), integ).map_err(|e| e.to_string())?)
+                let nodes = if coarse || scene.render.mode != "predict" {
+                    COARSE_FIELD_NODES
                 } else {
-                    None
+                    let probe = scene.build_scene(Some(g.clone())).map_err(|e| e.to_string())?;
+                    if predictors.has(&probe, full_nodes) {
+                        full_nodes
+                    } else {
+                        upgrade = Some(scene.clone());
+                        COARSE_FIELD_NODES
+                    }
                 };
-                let r = Renderer::new(s, setup.integrator).map_err(|e| e.to_string())?;
-                Ok((r, reference, setup.warning))
+                build_job(&scene, g, nodes, compare, &mut predictors)
+                    .map(|(r, reference, w)| (r, reference, w, compare))
             });
             match built {
-                Ok((r, reference, warning)) => {
+                Ok((r, reference, warning, _)) => {
                     mailbox.lock().unwrap().error = warning.map(|w| (generation, w));
                     let start = Instant::now();
                     // A quick first look: one pass at a quarter of the resolution, so a
@@ -174,7 +211,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                         });
                         wake();
                     }
-                    job = Some(Job { main: r, reference, generation, start, coarse });
+                    job = Some(Job { main: r, reference, generation, start, coarse, upgrade });
                 }
                 Err(e) => {
                     mailbox.lock().unwrap().error = Some((generation, e));
@@ -191,6 +228,19 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
         if j.main.render_pass(&control, j.generation) != PassOutcome::Completed {
             continue;
         }
+        if let Some(scene) = j.upgrade.take() {
+            // The coarse field's image is on screen; build the full field and start over.
+            let grid = j.main.scene().medium.grid().clone();
+            let compare = j.reference.is_some();
+            if let Ok((r, reference, _)) =
+                build_job(&scene, grid, models::depth_field::DEFAULT_MAX_NODES, compare, &mut predictors)
+            {
+                if control.generation() == j.generation {
+                    (j.main, j.reference, j.start) = (r, reference, Instant::now());
+                    continue;
+                }
+            }
+        }
         if let Some(r) = &mut j.reference {
             if r.render_pass(&control, j.generation) != PassOutcome::Completed {
                 continue;
@@ -198,9 +248,11 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
         }
         let film = Arc::new(j.main.snapshot());
         let secs = j.start.elapsed().as_secs_f64();
+        // Both renders' camera samples in compare mode.
+        let passes = film.spp() as f64 * if j.reference.is_some() { 2.0 } else { 1.0 };
         let published = Published {
             generation: j.generation,
-            samples_per_sec: film.spp() as f64 * film.pixel_count() as f64 / secs.max(1e-9),
+            samples_per_sec: passes * film.pixel_count() as f64 / secs.max(1e-9),
             noise: relative_noise(&film),
             render_secs: secs,
             film,
