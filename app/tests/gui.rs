@@ -90,3 +90,41 @@ fn compare_panel_shows_the_bias() {
     let (rel, floor) = h.state().compare_bias().unwrap();
     assert!(rel.is_finite() && rel >= 0.0 && floor > 0.0, "{rel} {floor}");
 }
+
+/// Opening files by path (what File > Open recent does): a scene is opened and
+/// remembered, a broken VDB is refused with a message naming it, and a scene whose
+/// model is missing renders by path tracing with a visible message saying so.
+#[test]
+fn recent_files_and_a_missing_model() {
+    let dir = std::env::temp_dir().join(format!("nimbus-gui-recent-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene = dir.join("s.toml");
+    std::fs::write(
+        &scene,
+        "[grid]\nbuiltin = \"sphere\"\nresolution = 24\n[camera]\nwidth = 24\nheight = 24\n[render]\nmode = \"predict\"\nmodel = \"missing.safetensors\"\n",
+    )
+    .unwrap();
+    let bad = dir.join("broken.vdb");
+    std::fs::write(&bad, b"not a vdb").unwrap();
+    let mut h = harness();
+    h.state_mut().request(Action::OpenPath(scene.clone()));
+    h.run_steps(2);
+    assert_eq!(h.state().scene().grid.builtin.as_deref(), Some("sphere"));
+    assert_eq!(h.state().recent().first(), Some(&scene));
+    let start = std::time::Instant::now();
+    loop {
+        if let Some(m) = h.state().worker_message() {
+            assert!(m.contains("missing.json") && m.contains("path tracing"), "{m}");
+            break;
+        }
+        assert!(start.elapsed().as_secs() < 60, "no message about the missing model");
+        h.run_steps(1);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    h.state_mut().request(Action::OpenPath(bad.clone()));
+    h.run_steps(1);
+    let (text, is_error) = h.state().message().cloned().expect("a message");
+    assert!(is_error && text.contains("broken.vdb"), "{text}");
+    assert_eq!(h.state().recent().len(), 1, "a file that failed to open is not remembered");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -50,10 +50,14 @@ impl Orbit {
 }
 
 /// Something the user asked for, applied after the frame's layout.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Action {
     OpenScene,
     OpenVdb,
+    /// Open a scene (.toml) or a VDB cloud (.vdb) without a dialog (recent files, tests).
+    OpenPath(std::path::PathBuf),
+    /// Pick another global model (.safetensors with its .json sidecar) for prediction.
+    LoadModel,
     SaveScene,
     ExportExr,
     ExportPng,
@@ -100,6 +104,9 @@ impl History {
 }
 
 const STORAGE_SCENE: &str = "nimbus.scene";
+const STORAGE_RECENT: &str = "nimbus.recent";
+/// Recent files kept in the File menu.
+const RECENT_MAX: usize = 8;
 
 pub struct NimbusApp {
     scene: SceneFile,
@@ -120,6 +127,8 @@ pub struct NimbusApp {
     /// Reference and prediction side by side, with the buffer panels.
     compare: bool,
     compare_view: CompareView,
+    /// Recently opened scenes and clouds, newest first (persisted).
+    recent: Vec<std::path::PathBuf>,
     texture: Option<egui::TextureHandle>,
     shown: Option<(u64, u32, f32, Buffer)>,
 }
@@ -150,6 +159,10 @@ impl NimbusApp {
             sent: None,
             compare: false,
             compare_view: CompareView::default(),
+            recent: storage
+                .and_then(|s| s.get_string(STORAGE_RECENT))
+                .map(|t| t.lines().filter(|l| !l.is_empty()).map(std::path::PathBuf::from).take(RECENT_MAX).collect())
+                .unwrap_or_default(),
             texture: None,
             shown: None,
         };
@@ -244,6 +257,22 @@ impl NimbusApp {
                         ui.close();
                     }
                 }
+                ui.menu_button("Open recent", |ui| {
+                    if self.recent.is_empty() {
+                        ui.label("nothing opened yet");
+                    }
+                    for path in self.recent.clone() {
+                        if ui.button(path.display().to_string()).clicked() {
+                            self.actions.push(Action::OpenPath(path));
+                            ui.close();
+                        }
+                    }
+                });
+                ui.separator();
+                if ui.button("Load global model…").clicked() {
+                    self.actions.push(Action::LoadModel);
+                    ui.close();
+                }
                 ui.separator();
                 if ui.button("Quit").clicked() {
                     ui.ctx().send_viewport_cmd(egui::ViewportCommand::Close);
@@ -313,29 +342,25 @@ impl NimbusApp {
                 self.set_scene(default_scene());
                 Ok(None)
             }
+            Action::OpenPath(path) => {
+                let is_vdb = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("vdb"));
+                if is_vdb { self.open_vdb(path) } else { self.open_scene(path) }
+            }
+            Action::LoadModel => {
+                let Some(path) = file_dialog().add_filter("Nimbus global model", &["safetensors"]).pick_file() else {
+                    return Ok(None);
+                };
+                self.load_model(path)
+            }
             Action::OpenScene => {
                 let Some(path) = file_dialog().add_filter("Nimbus scene", &["toml"]).pick_file() else {
                     return Ok(None);
                 };
-                let mut scene = SceneFile::load(&path)?;
-                scene.validate()?;
-                // Keep relative cloud files working after the scene moves into memory.
-                if let (Some(f), Some(dir)) = (&scene.grid.file, &scene.base_dir) {
-                    scene.grid.file = Some(dir.join(f).display().to_string());
-                }
-                self.set_scene(scene);
-                Ok(Some(format!("opened {}", path.display())))
+                self.open_scene(path)
             }
             Action::OpenVdb => {
                 let Some(path) = file_dialog().add_filter("OpenVDB", &["vdb"]).pick_file() else { return Ok(None) };
-                // Check it now, so a bad file is reported here rather than by the worker.
-                modeler::vdb::read_vdb(&path, None)?;
-                let mut scene = self.scene.clone();
-                let g = &mut scene.grid;
-                (g.builtin, g.preset, g.params, g.file, g.grid_name) =
-                    (None, None, None, Some(path.display().to_string()), None);
-                self.set_scene(scene);
-                Ok(Some(format!("opened {}", path.display())))
+                self.open_vdb(path)
             }
             Action::SaveScene => {
                 let Some(path) =
@@ -388,6 +413,59 @@ impl NimbusApp {
 
     pub fn scene(&self) -> &SceneFile {
         &self.scene
+    }
+
+    /// The render worker's current message (an error, or why prediction fell back).
+    pub fn worker_message(&self) -> Option<String> {
+        self.worker.mailbox.lock().unwrap().error.as_ref().map(|(_, m)| m.clone())
+    }
+
+    /// The recent-files list, newest first.
+    pub fn recent(&self) -> &[std::path::PathBuf] {
+        &self.recent
+    }
+
+    fn remember(&mut self, path: &std::path::Path) {
+        let path = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+        self.recent.retain(|p| *p != path);
+        self.recent.insert(0, path);
+        self.recent.truncate(RECENT_MAX);
+    }
+
+    fn open_scene(&mut self, path: std::path::PathBuf) -> anyhow::Result<Option<String>> {
+        let mut scene = SceneFile::load(&path)?;
+        scene.validate()?;
+        // Keep relative cloud and model files working after the scene moves into memory.
+        if let (Some(f), Some(dir)) = (&scene.grid.file, &scene.base_dir) {
+            scene.grid.file = Some(dir.join(f).display().to_string());
+        }
+        if let Some(m) = scene.model_path() {
+            scene.render.model = Some(m.display().to_string());
+        }
+        self.set_scene(scene);
+        self.remember(&path);
+        Ok(Some(format!("opened {}", path.display())))
+    }
+
+    fn open_vdb(&mut self, path: std::path::PathBuf) -> anyhow::Result<Option<String>> {
+        // Check it now, so a bad file is reported here rather than by the worker.
+        modeler::vdb::read_vdb(&path, None)?;
+        let mut scene = self.scene.clone();
+        let g = &mut scene.grid;
+        (g.builtin, g.preset, g.params, g.file, g.grid_name) =
+            (None, None, None, Some(path.display().to_string()), None);
+        self.set_scene(scene);
+        self.remember(&path);
+        Ok(Some(format!("opened {}", path.display())))
+    }
+
+    /// Checks the model now (a bad file is reported here, naming what is wrong) and
+    /// switches to prediction with it.
+    fn load_model(&mut self, path: std::path::PathBuf) -> anyhow::Result<Option<String>> {
+        models::global::GlobalModel::load(&path)?;
+        self.scene.render.model = Some(path.display().to_string());
+        self.scene.render.mode = "predict".into();
+        Ok(Some(format!("predicting with {}", path.display())))
     }
 
     fn apply_camera(&mut self) {
@@ -643,6 +721,8 @@ impl eframe::App for NimbusApp {
 
     fn save(&mut self, storage: &mut dyn eframe::Storage) {
         storage.set_string(STORAGE_SCENE, self.scene.to_toml());
+        let recent: Vec<String> = self.recent.iter().map(|p| p.display().to_string()).collect();
+        storage.set_string(STORAGE_RECENT, recent.join("\n"));
     }
 }
 
