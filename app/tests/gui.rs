@@ -76,6 +76,13 @@ fn compare_panel_shows_the_bias() {
     (s.camera.width, s.camera.height, s.grid.resolution) = (32, 32, 32);
     s.render.mode = "predict".into();
     h.state_mut().set_scene(s);
+    // The mode switch reaches the integrator: the published image is a prediction.
+    let start = std::time::Instant::now();
+    while !matches!(h.state().rendered_mode(), Some(engine::Mode::Predict { .. })) {
+        assert!(start.elapsed().as_secs() < 120, "no image in prediction mode");
+        h.run_steps(1);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
     h.state_mut().set_compare(true);
     let start = std::time::Instant::now();
     while h.state().compare_bias().is_none() {

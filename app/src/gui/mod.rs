@@ -415,6 +415,11 @@ impl NimbusApp {
         &self.scene
     }
 
+    /// The integrator mode of the latest published image.
+    pub fn rendered_mode(&self) -> Option<engine::Mode> {
+        self.worker.mailbox.lock().unwrap().latest.as_ref().map(|p| p.mode)
+    }
+
     /// The render worker's current message (an error, or why prediction fell back).
     pub fn worker_message(&self) -> Option<String> {
         self.worker.mailbox.lock().unwrap().error.as_ref().map(|(_, m)| m.clone())

@@ -35,6 +35,9 @@ pub struct Published {
     /// Relative standard error of the full image (mean over lit pixels).
     pub noise: f64,
     pub coarse: bool,
+    /// The integrator mode the film was rendered in (prediction falls back to path
+    /// tracing when the model cannot be loaded).
+    pub mode: engine::Mode,
     /// In compare mode: the path-traced reference (same scene, same k, its own seed),
     /// accumulating alongside `film`.
     pub reference: Option<Arc<Film>>,
@@ -207,6 +210,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                             render_secs: secs,
                             film: Arc::new(film),
                             coarse: true,
+                            mode: r.integrator().settings().mode,
                             reference: None,
                         });
                         wake();
@@ -257,6 +261,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             render_secs: secs,
             film,
             coarse: j.coarse,
+            mode: j.main.integrator().settings().mode,
             reference: j.reference.as_ref().map(|r| Arc::new(r.snapshot())),
         };
         mailbox.lock().unwrap().latest = Some(published);
