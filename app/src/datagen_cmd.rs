@@ -67,6 +67,10 @@ pub struct GlobalArgs {
     /// Points per chunk file (the unit of resuming and sharding).
     #[arg(long, default_value_t = 200)]
     pub chunk_size: u64,
+    /// Fraction of points sampled like the renderer's queries at k = 1 (first collision
+    /// of a ray entering the shape, looking back along it); the rest uniform.
+    #[arg(long, default_value_t = 0.0)]
+    pub first_collision: f32,
     /// Make only part i of N (0-based), e.g. --shard 3/16; join with `nimbus datagen merge`.
     #[arg(long, default_value = "0/1")]
     pub shard: String,
@@ -115,6 +119,7 @@ impl GlobalArgs {
             max_samples: self.max_samples,
             seed: self.seed,
             chunk_size: self.chunk_size,
+            first_collision: self.first_collision,
         };
         spec.validate()?;
         Ok(spec)

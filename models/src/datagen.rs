@@ -89,6 +89,12 @@ pub struct GlobalSpec {
     pub max_samples: u64,
     pub seed: u64,
     pub chunk_size: u64,
+    /// Fraction of points sampled like the renderer's queries at k = 1: the first
+    /// collision of a ray entering the shape, query direction back along the ray (near
+    /// the surface, looking out). The rest are uniform in the volume with a uniform
+    /// direction (the thesis's sampling). 0 in data sets made before the option.
+    #[serde(default)]
+    pub first_collision: f32,
 }
 
 impl Default for GlobalSpec {
@@ -109,6 +115,7 @@ impl Default for GlobalSpec {
             max_samples: 10_000_000,
             seed: 1,
             chunk_size: 200,
+            first_collision: 0.0,
         }
     }
 }
@@ -169,6 +176,9 @@ impl GlobalSpec {
         check("--albedo", self.albedo, &|v| (0.0..=1.0).contains(&v), "[0, 1]")?;
         check("--g", self.g, &|v| v > -1.0 && v < 1.0, "(-1, 1)")?;
         check("--scale", self.scale, &|v| v >= 0.01 && v <= 100.0, "[0.01, 100]")?;
+        if !(0.0..=1.0).contains(&self.first_collision) {
+            return Err(setting("--first-collision", format!("{} must lie in [0, 1]", self.first_collision)));
+        }
         if self.shapes.is_empty() {
             return Err(setting("--shapes", "needs at least one of sphere, box, ellipsoid"));
         }
@@ -278,9 +288,30 @@ pub fn sample_setup(spec: &GlobalSpec, index: u64) -> (ConvexMedium, ShapeKind, 
     let phase = PhaseFunction::HenyeyGreenstein { g };
     let medium = ConvexMedium::new(shape, rotation * Mat3::from_diagonal(scale), sigma, albedo, phase)
         .expect("validated settings give a valid medium");
-    let x = medium.sample_inside(&mut rng);
-    let wo = engine::sampling::sample_uniform_sphere(rng.uniform2());
+    // No extra random number unless the option is on: older data sets stay reproducible.
+    let (x, wo) = if spec.first_collision > 0.0 && rng.uniform() < spec.first_collision {
+        first_collision_query(&medium, &mut rng)
+    } else {
+        (medium.sample_inside(&mut rng), engine::sampling::sample_uniform_sphere(rng.uniform2()))
+    };
     (medium, kind, x, wo, rng)
+}
+
+/// A query like the renderer's at k = 1: a ray through a uniform interior point along a
+/// uniform direction enters the shape; its first collision (exact free flight) is the
+/// point and the direction back along the ray the query direction. Rays that pass
+/// through without colliding are drawn again.
+fn first_collision_query(medium: &ConvexMedium, rng: &mut Rng) -> (Vec3, Vec3) {
+    loop {
+        let p0 = medium.sample_inside(rng);
+        let d = engine::sampling::sample_uniform_sphere(rng.uniform2());
+        let entry = p0 - d * medium.exit_distance(p0, -d);
+        let chord = medium.exit_distance(entry, d);
+        let t = engine::sampling::sample_exponential(rng.uniform(), medium.sigma_t);
+        if t < chord {
+            return (entry + d * t, -d);
+        }
+    }
 }
 
 /// Generates data point `index`.
