@@ -184,6 +184,12 @@ pub fn nonempty(reference: &[[f32; 3]]) -> Vec<bool> {
     reference.iter().map(|p| avg3(p) > 0.0).collect()
 }
 
+/// Mean of the pixels whose value (averaged over channels) is > 0.
+pub fn lit_mean(img: &[[f32; 3]]) -> f64 {
+    let (s, n) = img.iter().map(avg3).filter(|v| *v > 0.0).fold((0.0f64, 0usize), |(s, n), v| (s + v, n + 1));
+    if n == 0 { 0.0 } else { s / n as f64 }
+}
+
 /// TTUV: mean over `mask` of the variance of the pixel estimate, times seconds.
 pub fn ttuv(var: &[[f32; 3]], mask: &[bool], seconds: f64) -> f64 {
     let (mut s, mut n) = (0.0f64, 0usize);
@@ -448,6 +454,12 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         // The reference, from the cache or rendered now.
         let ref_npy = cache.join(format!("{key}_ref{}.npy", args.spp_ref));
         let ref_json = ref_npy.with_extension("json");
+        // Full transport by path tracing with the given seed.
+        let path_traced = |seed: u64| -> Result<Integrator> {
+            let mut f = file.clone();
+            (f.seed, f.k) = (seed, 1);
+            Ok(f.integrator_with(None)?)
+        };
         let (reference, mut meta) = match (read_json::<ReferenceMeta>(&ref_json), ref_npy.exists()) {
             (Some(meta), true) => {
                 let layers = read_image_npy(&ref_npy, args.size, args.size, 2)?;
@@ -456,18 +468,9 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 (Image { w: args.size, h: args.size, mean, var }, meta)
             }
             _ => {
-                let mut f = file.clone();
-                f.seed = 0;
-                f.k = 1;
-                let t = render_tracked(
-                    scene.clone(),
-                    f.integrator_with(None)?,
-                    args.spp_ref,
-                    &control,
-                    None,
-                    false,
-                    |d| bar.set_position(base + d as u64),
-                )?;
+                let t = render_tracked(scene.clone(), path_traced(0)?, args.spp_ref, &control, None, false, |d| {
+                    bar.set_position(base + d as u64)
+                })?;
                 let img = Image::from_film(&t.film, Buffer::Full);
                 let mask = nonempty(&img.mean);
                 let meta = ReferenceMeta {
@@ -486,12 +489,9 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         };
         let mask = nonempty(&reference.mean);
         if args.preview && meta.preview_secs.is_none() {
-            let mut f = file.clone();
-            f.seed = 7;
-            f.k = 1;
             let t = render_tracked(
                 scene.clone(),
-                f.integrator_with(None)?,
+                path_traced(7)?,
                 (args.spp_ref / 2).max(1),
                 &control,
                 Some((&reference.mean, &mask)),
@@ -600,18 +600,13 @@ pub fn false_colour(t: f32) -> [u8; 3] {
 /// One PNG per configuration, one row per k: reference full, prediction full,
 /// low orders (1 .. k-1), reference high orders (reference - low), predicted high
 /// orders, and |predicted - reference high| in false colour (scale: black 0, yellow
-/// = half the mean reference over non-empty pixels), like the thesis's figure 5.9.
+/// = the mean reference high order over lit pixels, as in the window), like the
+/// thesis's figure 5.9.
 fn write_sheet(path: &Path, reference: &Image, cache: &Path, key: &str, args: &EvalArgs) -> Result<()> {
     let (w, h) = (reference.w, reference.h);
     let gap = 4u32;
     let mut sheet =
         image::RgbImage::from_pixel(6 * w + 5 * gap, args.k.len() as u32 * (h + gap), image::Rgb([40, 40, 40]));
-    let mask = nonempty(&reference.mean);
-    let ref_mean = {
-        let (s, n) =
-            reference.mean.iter().zip(&mask).filter(|(_, m)| **m).fold((0.0, 0), |(s, n), (p, _)| (s + avg3(p), n + 1));
-        if n > 0 { s / n as f64 } else { 1.0 }
-    };
     let tone = ToneMap::Filmic;
     for (row, &k) in args.k.iter().enumerate() {
         let cell_npy = cache.join(format!("{}.npy", cell_key(key, k, args)));
@@ -619,11 +614,13 @@ fn write_sheet(path: &Path, reference: &Image, cache: &Path, key: &str, args: &E
         let (full, low, high) = (&layers[0], &layers[1], &layers[2]);
         let ref_high: Vec<[f32; 3]> =
             reference.mean.iter().zip(low).map(|(r, l)| std::array::from_fn(|c| (r[c] - l[c]).max(0.0))).collect();
+        // The error's colour scale, as in the window: yellow at the mean reference high.
+        let scale = lit_mean(&ref_high).max(1e-12);
         let toned = |img: &Vec<[f32; 3]>| img.iter().map(|p| p.map(|v| tone.apply(v, 0.0))).collect::<Vec<[u8; 3]>>();
         let error: Vec<[u8; 3]> = high
             .iter()
             .zip(&ref_high)
-            .map(|(a, b)| false_colour((avg3(&std::array::from_fn(|c| (a[c] - b[c]).abs())) / (0.5 * ref_mean)) as f32))
+            .map(|(a, b)| false_colour((avg3(&std::array::from_fn(|c| (a[c] - b[c]).abs())) / scale) as f32))
             .collect();
         let tiles = [toned(&reference.mean), toned(full), toned(low), toned(&ref_high), toned(high), error];
         for (col, tile) in tiles.iter().enumerate() {

@@ -3,7 +3,7 @@
 //! colour with its scale, and the relative bias of CONVENTIONS.md as a number).
 
 use super::worker::Published;
-use crate::eval_cmd::{Image, bias, false_colour};
+use crate::eval_cmd::{Image, bias, false_colour, lit_mean};
 use crate::output::ToneMap;
 use eframe::egui;
 use engine::{Buffer, Film};
@@ -35,15 +35,6 @@ fn texture(ctx: &egui::Context, slot: &mut Option<egui::TextureHandle>, name: &s
     }
 }
 
-fn mean_lit(img: &[[f32; 3]]) -> f32 {
-    let (s, n) = img
-        .iter()
-        .map(|p| (p[0] + p[1] + p[2]) / 3.0)
-        .filter(|v| *v > 0.0)
-        .fold((0.0f64, 0usize), |(s, n), v| (s + v as f64, n + 1));
-    if n == 0 { 0.0 } else { (s / n as f64) as f32 }
-}
-
 impl CompareView {
     /// Refreshes textures and numbers when a new pass has been published.
     pub fn update(&mut self, ctx: &egui::Context, p: &Published, tone: ToneMap, exposure: f32, buffer: Buffer) {
@@ -57,7 +48,7 @@ impl CompareView {
         texture(ctx, &mut self.reference, "nimbus-reference", w, h, &tone.to_rgba8(&reference.mean(buffer), exposure));
         let (pred_high, ref_high) = (p.film.mean(Buffer::High), reference.mean(Buffer::High));
         let low = p.film.mean(Buffer::Low);
-        self.error_scale = mean_lit(&ref_high).max(1e-6);
+        self.error_scale = (lit_mean(&ref_high) as f32).max(1e-6);
         let error: Vec<u8> = pred_high
             .iter()
             .zip(&ref_high)
