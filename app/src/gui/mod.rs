@@ -129,6 +129,9 @@ pub struct NimbusApp {
     compare_view: CompareView,
     /// Recently opened scenes and clouds, newest first (persisted).
     recent: Vec<std::path::PathBuf>,
+    /// CPU time of the last frame's `ui` and the largest over the last second (ms):
+    /// the window's own cost, shown in the status bar (goal: under 16 ms).
+    frame_ms: (f32, f32, std::time::Instant),
     texture: Option<egui::TextureHandle>,
     shown: Option<(u64, u32, f32, Buffer)>,
 }
@@ -159,6 +162,7 @@ impl NimbusApp {
             sent: None,
             compare: false,
             compare_view: CompareView::default(),
+            frame_ms: (0.0, 0.0, std::time::Instant::now()),
             recent: storage
                 .and_then(|s| s.get_string(STORAGE_RECENT))
                 .map(|t| t.lines().filter(|l| !l.is_empty()).map(std::path::PathBuf::from).take(RECENT_MAX).collect())
@@ -670,6 +674,8 @@ impl NimbusApp {
             } else {
                 ui.label("starting…");
             }
+            ui.label(format!("   UI {:.1} ms (max {:.1} ms over 1 s)", self.frame_ms.0, self.frame_ms.1))
+                .on_hover_text("CPU time of the window's own work per frame; rendering runs on other threads");
             if mb.building {
                 ui.spinner();
                 ui.label("building the cloud…");
@@ -711,6 +717,7 @@ impl NimbusApp {
 
 impl eframe::App for NimbusApp {
     fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
+        let started = std::time::Instant::now();
         egui::Panel::top("menu").show(ui, |ui| self.menu(ui));
         egui::Panel::right("controls").resizable(true).default_size(300.0).show(ui, |ui| self.controls(ui));
         egui::Panel::bottom("status").show(ui, |ui| self.status(ui));
@@ -722,6 +729,9 @@ impl eframe::App for NimbusApp {
         self.shortcuts(&ctx);
         self.apply_actions();
         self.sync(&ctx);
+        let ms = started.elapsed().as_secs_f32() * 1e3;
+        let (_, max, since) = self.frame_ms;
+        self.frame_ms = if since.elapsed().as_secs_f32() > 1.0 { (ms, ms, started) } else { (ms, max.max(ms), since) };
     }
 
     fn save(&mut self, storage: &mut dyn eframe::Storage) {
