@@ -518,13 +518,7 @@ impl SceneFile {
             return Ok(IntegratorSetup { integrator: self.integrator_with(None)?, warning: None });
         }
         let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("prediction mode needs a sun".into()))?;
-        let key = PredictorKey {
-            grid: Arc::as_ptr(scene.medium.grid()) as usize,
-            rho: scene.medium.rho().to_bits(),
-            sun: sun.direction().to_array().map(f32::to_bits),
-            model: self.model_path(),
-            nodes: max_nodes,
-        };
+        let key = PredictorKey::new(self, scene, max_nodes);
         if let Some((k, bound)) = &cache.last {
             if *k == key {
                 let predictor: Arc<dyn InScatterPredictor> = bound.clone();
@@ -566,15 +560,22 @@ pub struct PredictorCache {
     last: Option<(PredictorKey, Arc<BoundGlobalModel>)>,
 }
 
+impl PredictorKey {
+    fn new(file: &SceneFile, scene: &Scene, nodes: u32) -> Self {
+        PredictorKey {
+            grid: Arc::as_ptr(scene.medium.grid()) as usize,
+            rho: scene.medium.rho().to_bits(),
+            sun: scene.sun.map(|s| s.direction().to_array().map(f32::to_bits)).unwrap_or_default(),
+            model: file.model_path(),
+            nodes,
+        }
+    }
+}
+
 impl PredictorCache {
-    /// Whether the cache holds a model bound for `scene` with `max_nodes`.
-    pub fn has(&self, scene: &Scene, max_nodes: u32) -> bool {
-        self.last.as_ref().is_some_and(|(k, _)| {
-            k.grid == Arc::as_ptr(scene.medium.grid()) as usize
-                && k.rho == scene.medium.rho().to_bits()
-                && scene.sun.is_some_and(|s| k.sun == s.direction().to_array().map(f32::to_bits))
-                && k.nodes == max_nodes
-        })
+    /// Whether the cache holds the model of `file` bound for `scene` with `max_nodes`.
+    pub fn has(&self, file: &SceneFile, scene: &Scene, max_nodes: u32) -> bool {
+        self.last.as_ref().is_some_and(|(k, _)| *k == PredictorKey::new(file, scene, max_nodes))
     }
 }
 

@@ -51,6 +51,14 @@ impl FeatureExtractor {
         false
     }
 
+    /// The first four features, [albedo, g, theta, phi], with the query direction's
+    /// angles in `frame`.
+    #[inline]
+    pub fn write_head(albedo: f32, g: f32, frame: &LightFrame, omega_q: Vec3, out: &mut [f32]) {
+        let (theta, phi) = frame.angles(omega_q);
+        out[..4].copy_from_slice(&[albedo, g, theta, phi]);
+    }
+
     /// Fills `out` (length `len()`) given an optical-depth function of a world direction.
     pub fn extract_with(
         &self,
@@ -63,11 +71,7 @@ impl FeatureExtractor {
     ) {
         assert_eq!(out.len(), self.len());
         let frame = LightFrame::new(omega_l);
-        let (theta, phi) = frame.angles(omega_q);
-        out[0] = albedo;
-        out[1] = g;
-        out[2] = theta;
-        out[3] = phi;
+        Self::write_head(albedo, g, &frame, omega_q, out);
         for (o, d) in out[4..].iter_mut().zip(&self.directions) {
             *o = tau_hat(tau(frame.to_world(*d)));
         }

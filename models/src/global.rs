@@ -418,8 +418,14 @@ impl Mlp {
     /// `scratch` has been sized by [`Mlp::scratch`].
     #[inline]
     pub fn forward(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
-        debug_assert_eq!(x.len(), self.n_inputs());
         self.ensure(scratch);
+        self.forward_sized(x, scratch)
+    }
+
+    /// [`Mlp::forward`] with `scratch` already sized by [`Mlp::ensure`].
+    #[inline]
+    fn forward_sized(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
+        debug_assert_eq!(x.len(), self.n_inputs());
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
             // SAFETY: the CPU supports the features the function was compiled for.
@@ -562,7 +568,7 @@ impl GlobalModel {
         for (k, v) in raw.iter().enumerate() {
             x[k] = (v - st.feature_mean[k]) / st.feature_std[k];
         }
-        let y = self.mlp.forward(&x, scratch);
+        let y = self.mlp.forward_sized(&x, scratch);
         scratch.features = x;
         untransform_target(self.target, raw, y * st.target_std + st.target_mean)
     }
@@ -638,11 +644,7 @@ impl BoundGlobalModel {
     /// The raw feature row at `x` for query direction `omega` (written to `out`).
     #[inline]
     pub fn features(&self, medium: &Medium, x: Vec3, omega: Vec3, out: &mut [f32]) {
-        let (theta, phi) = self.frame.angles(omega);
-        out[0] = medium.albedo();
-        out[1] = medium.phase().mean_cosine();
-        out[2] = theta;
-        out[3] = phi;
+        FeatureExtractor::write_head(medium.albedo(), medium.phase().mean_cosine(), &self.frame, omega, out);
         self.field.lookup(x, &mut out[4..]);
     }
 

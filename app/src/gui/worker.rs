@@ -4,7 +4,7 @@
 //! stops at its next tile, and the worker starts over with the new snapshot.
 
 use crate::scene::{PredictorCache, SceneFile};
-use engine::{Buffer, DensityGrid, Film, PassOutcome, RenderControl, Renderer};
+use engine::{Buffer, DensityGrid, Film, PassOutcome, RenderControl, Renderer, Scene};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -63,26 +63,24 @@ pub const COARSE_FIELD_NODES: u32 = 24;
 /// with prediction, the path-traced reference (its own seed). Returns them with the
 /// model's fallback warning, if any.
 fn build_job(
-    scene: &SceneFile,
-    grid: Arc<DensityGrid>,
+    file: &SceneFile,
+    scene: Arc<Scene>,
     nodes: u32,
     compare: bool,
     cache: &mut PredictorCache,
 ) -> Result<(Renderer, Option<Renderer>, Option<String>), String> {
-    let s = scene.build_scene(Some(grid)).map_err(|e| e.to_string())?;
-    let setup = scene.integrator_cached(&s, nodes, cache).map_err(|e| e.to_string())?;
+    let setup = file.integrator_cached(&scene, nodes, cache).map_err(|e| e.to_string())?;
     let predicting = matches!(setup.integrator.settings().mode, engine::Mode::Predict { .. });
-    let s = Arc::new(s);
     let reference = if compare && predicting {
-        let mut rs = scene.clone();
+        let mut rs = file.clone();
         rs.render.mode = "reference".into();
         rs.seed = rs.seed.wrapping_add(1);
         let integ = rs.integrator_with(None).map_err(|e| e.to_string())?;
-        Some(Renderer::new(s.clone(), integ).map_err(|e| e.to_string())?)
+        Some(Renderer::new(scene.clone(), integ).map_err(|e| e.to_string())?)
     } else {
         None
     };
-    let r = Renderer::new(s, setup.integrator).map_err(|e| e.to_string())?;
+    let r = Renderer::new(scene, setup.integrator).map_err(|e| e.to_string())?;
     Ok((r, reference, setup.warning))
 }
 
@@ -181,22 +179,19 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             let full_nodes = models::depth_field::DEFAULT_MAX_NODES;
             let mut upgrade = None;
             let built = grid.map_err(|e| e.to_string()).and_then(|g| {
+                let built = Arc::new(scene.build_scene(Some(g)).map_err(|e| e.to_string())?);
                 let nodes = if coarse || scene.render.mode != "predict" {
                     COARSE_FIELD_NODES
+                } else if predictors.has(&scene, &built, full_nodes) {
+                    full_nodes
                 } else {
-                    let probe = scene.build_scene(Some(g.clone())).map_err(|e| e.to_string())?;
-                    if predictors.has(&probe, full_nodes) {
-                        full_nodes
-                    } else {
-                        upgrade = Some(scene.clone());
-                        COARSE_FIELD_NODES
-                    }
+                    upgrade = Some(scene.clone());
+                    COARSE_FIELD_NODES
                 };
-                build_job(&scene, g, nodes, compare, &mut predictors)
-                    .map(|(r, reference, w)| (r, reference, w, compare))
+                build_job(&scene, built, nodes, compare, &mut predictors)
             });
             match built {
-                Ok((r, reference, warning, _)) => {
+                Ok((r, reference, warning)) => {
                     mailbox.lock().unwrap().error = warning.map(|w| (generation, w));
                     let start = Instant::now();
                     // A quick first look: one pass at a quarter of the resolution, so a
@@ -234,10 +229,10 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
         }
         if let Some(scene) = j.upgrade.take() {
             // The coarse field's image is on screen; build the full field and start over.
-            let grid = j.main.scene().medium.grid().clone();
+            let built = j.main.scene().clone();
             let compare = j.reference.is_some();
             if let Ok((r, reference, _)) =
-                build_job(&scene, grid, models::depth_field::DEFAULT_MAX_NODES, compare, &mut predictors)
+                build_job(&scene, built, models::depth_field::DEFAULT_MAX_NODES, compare, &mut predictors)
             {
                 if control.generation() == j.generation {
                     (j.main, j.reference, j.start) = (r, reference, Instant::now());
