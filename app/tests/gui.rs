@@ -96,6 +96,58 @@ fn compare_panel_shows_the_bias() {
     h.get_by_label("reference high orders");
     let (rel, floor) = h.state().compare_bias().unwrap();
     assert!(rel.is_finite() && rel >= 0.0 && floor > 0.0, "{rel} {floor}");
+
+    // The wipe view: grabbing the divider (in the middle of the image) and dragging
+    // it left moves it; the camera stays where it was.
+    h.state_mut().set_compare_layout(app::gui::compare::Layout::Wipe);
+    h.run_steps(2);
+    let camera = h.state().scene().camera.position;
+    let rect = h.state().viewport_rect();
+    assert!((h.state().wipe() - 0.5).abs() < 1e-6);
+    drag(&mut h, rect.center(), rect.center() - egui::vec2(rect.width() * 0.2, 0.0), egui::PointerButton::Primary);
+    let wipe = h.state().wipe();
+    assert!(wipe < 0.45 && wipe >= 0.0, "the divider did not follow the drag: {wipe}");
+    assert_eq!(h.state().scene().camera.position, camera, "the wipe drag moved the camera");
+}
+
+/// Presses `button` at `from`, moves to `to` in steps and releases, as a mouse would.
+fn drag(h: &mut Harness<'static, NimbusApp>, from: egui::Pos2, to: egui::Pos2, button: egui::PointerButton) {
+    let press = |pos, pressed| egui::Event::PointerButton { pos, button, pressed, modifiers: egui::Modifiers::NONE };
+    h.hover_at(from);
+    h.run_steps(1);
+    h.event(press(from, true));
+    h.run_steps(1);
+    for i in 1..=10 {
+        h.hover_at(from + (to - from) * (i as f32 / 10.0));
+        h.run_steps(1);
+    }
+    h.event(press(to, false));
+    h.run_steps(2);
+}
+
+/// Dragging the image with the secondary button moves the sun (right: azimuth up,
+/// up: elevation up) and the scene's light with it; a primary drag orbits the camera
+/// and leaves the sun alone.
+#[test]
+fn dragging_the_viewport_moves_the_sun_or_the_camera() {
+    let mut h = harness();
+    h.run_steps(3);
+    let rect = h.state().viewport_rect();
+    assert!(rect.width() > 100.0 && rect.height() > 100.0, "{rect:?}");
+    let (el0, az0) = h.state().sun_angles();
+    let (sun0, cam0) = (h.state().scene().sun.direction, h.state().scene().camera.position);
+    let c = rect.center();
+    drag(&mut h, c, c + egui::vec2(50.0, -40.0), egui::PointerButton::Secondary);
+    let (el1, az1) = h.state().sun_angles();
+    assert!(az1 != az0 && (az1 - az0).rem_euclid(360.0) < 180.0, "azimuth {az0} -> {az1}");
+    assert!(el1 > el0 || el0 >= 89.0, "elevation {el0} -> {el1}");
+    assert_ne!(h.state().scene().sun.direction, sun0, "the scene's sun did not move");
+    assert_eq!(h.state().scene().camera.position, cam0, "the sun drag moved the camera");
+
+    let sun1 = h.state().scene().sun.direction;
+    drag(&mut h, c, c + egui::vec2(60.0, 0.0), egui::PointerButton::Primary);
+    assert_ne!(h.state().scene().camera.position, cam0, "the orbit drag did not move the camera");
+    assert_eq!(h.state().scene().sun.direction, sun1, "the orbit drag moved the sun");
 }
 
 /// Opening files by path (what File > Open recent does): a scene is opened and
@@ -134,4 +186,21 @@ fn recent_files_and_a_missing_model() {
     assert!(is_error && text.contains("broken.vdb"), "{text}");
     assert_eq!(h.state().recent().len(), 1, "a file that failed to open is not remembered");
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The window's layout, rendered headless by wgpu on Mesa's software Vulkan and
+/// compared with the committed snapshot (`app/tests/snapshots/window.png`; after an
+/// intended change, `UPDATE_SNAPSHOTS=1` rewrites it). The viewport and the status
+/// bar change as the cloud accumulates, so they are masked.
+#[test]
+fn window_snapshot() {
+    let mut h = harness();
+    let mut s = h.state().scene().clone();
+    (s.camera.width, s.camera.height) = (32, 32);
+    h.state_mut().set_scene(s);
+    h.run_steps(3);
+    let view = h.state().viewport_rect();
+    h.mask(view);
+    h.mask(egui::Rect::from_min_max(egui::pos2(0.0, view.max.y), egui::pos2(1200.0, 800.0)));
+    h.snapshot("window");
 }

@@ -137,3 +137,21 @@ fn vdb_cloud_round_trip_through_the_cli() {
     assert!(e.contains("scene-q") && e.contains("scene-a"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `nimbus bench memory` samples resident memory while the window's worker
+/// accumulates, and writes its table; nonsense durations are refused.
+#[test]
+fn memory_bench_writes_its_samples() {
+    let dir = temp_dir("memory");
+    nimbus(&["bench", "memory", "--seconds", "2", "--interval", "0.5", "--size", "16", "--out", s(&dir)]).unwrap();
+    let csv = std::fs::read_to_string(dir.join("memory.csv")).unwrap();
+    let rows: Vec<Vec<f64>> =
+        csv.lines().skip(1).map(|l| l.split(',').map(|v| v.parse().unwrap()).collect()).collect();
+    assert!(rows.len() >= 4, "{csv}");
+    assert!(rows.iter().all(|r| r[1] > 1.0), "resident memory must be positive: {csv}");
+    assert!(rows.windows(2).all(|w| w[1][0] > w[0][0]), "times must increase: {csv}");
+    assert!(dir.join("memory.png").exists());
+    let e = format!("{:#}", nimbus(&["bench", "memory", "--seconds", "0"]).unwrap_err());
+    assert!(e.contains("positive"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,21 +1,51 @@
-//! Reference vs prediction: the textures of the side-by-side view and the buffer panel
-//! (low orders, predicted high orders, reference high orders, their error in false
-//! colour with its scale, and the relative bias of CONVENTIONS.md as a number).
+//! Reference vs prediction: the textures of the side-by-side and wipe views and the
+//! buffer panel (low orders, predicted high orders, reference high orders, their
+//! error in false colour with its scale, and the relative bias of CONVENTIONS.md as
+//! a number).
+//!
+//! Preparing these images (five tone-mapped buffers and the bias with its variance)
+//! costs several milliseconds at 512^2, so it runs on a helper thread: the UI hands
+//! it the published films (shared, not copied) and only uploads the finished images.
 
 use super::worker::Published;
 use crate::eval_cmd::{Image, bias, false_colour, lit_mean};
 use crate::output::ToneMap;
 use eframe::egui;
 use engine::{Buffer, Film};
+use std::sync::Arc;
+use std::sync::mpsc::{Receiver, TryRecvError};
 
 /// The panels, in order.
 pub const PANELS: [&str; 4] =
     ["low orders 1 .. k-1", "predicted high orders", "reference high orders", "error |predicted - reference| (high)"];
 
-#[derive(Default)]
+/// How reference and prediction share the viewport.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Layout {
+    SideBySide,
+    /// Both images over the whole viewport, the reference left of a draggable divider.
+    Wipe,
+}
+
+/// What the textures show: (generation, prediction spp, reference spp, exposure bits,
+/// buffer, tone map).
+type Key = (u64, u32, u32, u32, Buffer, ToneMap);
+
+/// Images prepared off the UI thread.
+struct Prepared {
+    key: Key,
+    size: [usize; 2],
+    reference: Vec<u8>,
+    panels: [Vec<u8>; 4],
+    error_scale: f32,
+    bias: Option<(f64, f64)>,
+}
+
 pub struct CompareView {
-    /// What the textures show: (generation, prediction spp, reference spp, exposure bits, buffer).
-    key: Option<(u64, u32, u32, u32, Buffer)>,
+    /// What the textures show now.
+    key: Option<Key>,
+    /// A preparation under way and what it is for.
+    pending: Option<(Key, Receiver<Prepared>)>,
     /// The reference image in the main view's buffer.
     pub reference: Option<egui::TextureHandle>,
     panels: [Option<egui::TextureHandle>; 4],
@@ -25,53 +55,122 @@ pub struct CompareView {
     /// noise floor of that number (CONVENTIONS.md; 16x box downscale).
     pub bias: Option<(f64, f64)>,
     enlarged: Option<usize>,
+    pub layout: Layout,
+    /// Divider of the wipe view, as a fraction of the image width from the left.
+    pub wipe: f32,
 }
 
-fn texture(ctx: &egui::Context, slot: &mut Option<egui::TextureHandle>, name: &str, w: u32, h: u32, rgba: &[u8]) {
-    let image = egui::ColorImage::from_rgba_unmultiplied([w as usize, h as usize], rgba);
+impl Default for CompareView {
+    fn default() -> Self {
+        CompareView {
+            key: None,
+            pending: None,
+            reference: None,
+            panels: Default::default(),
+            error_scale: 1.0,
+            bias: None,
+            enlarged: None,
+            layout: Layout::SideBySide,
+            wipe: 0.5,
+        }
+    }
+}
+
+fn texture(ctx: &egui::Context, slot: &mut Option<egui::TextureHandle>, name: &str, size: [usize; 2], rgba: &[u8]) {
+    let image = egui::ColorImage::from_rgba_unmultiplied(size, rgba);
     match slot {
         Some(t) => t.set(image, egui::TextureOptions::LINEAR),
         None => *slot = Some(ctx.load_texture(name, image, egui::TextureOptions::LINEAR)),
     }
 }
 
+fn prepare(key: Key, film: &Film, reference: &Film, tone: ToneMap, exposure: f32, buffer: Buffer) -> Prepared {
+    let (w, h) = (film.width(), film.height());
+    let (pred_high, ref_high) = (film.mean(Buffer::High), reference.mean(Buffer::High));
+    let error_scale = (lit_mean(&ref_high) as f32).max(1e-6);
+    let error: Vec<u8> = pred_high
+        .iter()
+        .zip(&ref_high)
+        .flat_map(|(a, b)| {
+            let e = (0..3).map(|c| (a[c] - b[c]).abs()).sum::<f32>() / 3.0;
+            let [r, g, bl] = false_colour(e / error_scale);
+            [r, g, bl, 255]
+        })
+        .collect();
+    let panels = [
+        tone.to_rgba8(&film.mean(Buffer::Low), exposure),
+        tone.to_rgba8(&pred_high, exposure),
+        tone.to_rgba8(&ref_high, exposure),
+        error,
+    ];
+    let bias = (reference.spp() > 0 && film.spp() > 0).then(|| {
+        let img = |f: &Film| Image { w, h, mean: f.mean(Buffer::Full), var: f.variance_of_mean(Buffer::Full) };
+        let (_, rel, floor) = bias(&img(reference), &img(film));
+        (rel, floor)
+    });
+    Prepared {
+        key,
+        size: [w as usize, h as usize],
+        reference: tone.to_rgba8(&reference.mean(buffer), exposure),
+        panels,
+        error_scale,
+        bias,
+    }
+}
+
 impl CompareView {
-    /// Refreshes textures and numbers when a new pass has been published.
+    /// Starts preparing the images of a newly published pass (unless one is under
+    /// way) and uploads finished ones. Never blocks on the preparation.
     pub fn update(&mut self, ctx: &egui::Context, p: &Published, tone: ToneMap, exposure: f32, buffer: Buffer) {
+        if let Some((_, rx)) = &self.pending {
+            match rx.try_recv() {
+                Ok(done) => {
+                    self.pending = None;
+                    self.upload(ctx, done);
+                }
+                Err(TryRecvError::Empty) => return,
+                Err(TryRecvError::Disconnected) => self.pending = None,
+            }
+        }
         let Some(reference) = &p.reference else { return };
-        let key = (p.generation, p.film.spp(), reference.spp(), exposure.to_bits(), buffer);
+        let key = (p.generation, p.film.spp(), reference.spp(), exposure.to_bits(), buffer, tone);
         if self.key == Some(key) {
             return;
         }
-        self.key = Some(key);
-        let (w, h) = (p.film.width(), p.film.height());
-        texture(ctx, &mut self.reference, "nimbus-reference", w, h, &tone.to_rgba8(&reference.mean(buffer), exposure));
-        let (pred_high, ref_high) = (p.film.mean(Buffer::High), reference.mean(Buffer::High));
-        let low = p.film.mean(Buffer::Low);
-        self.error_scale = (lit_mean(&ref_high) as f32).max(1e-6);
-        let error: Vec<u8> = pred_high
-            .iter()
-            .zip(&ref_high)
-            .flat_map(|(a, b)| {
-                let e = (0..3).map(|c| (a[c] - b[c]).abs()).sum::<f32>() / 3.0;
-                let [r, g, bl] = false_colour(e / self.error_scale);
-                [r, g, bl, 255]
-            })
-            .collect();
-        let images = [
-            tone.to_rgba8(&low, exposure),
-            tone.to_rgba8(&pred_high, exposure),
-            tone.to_rgba8(&ref_high, exposure),
-            error,
-        ];
-        for (i, rgba) in images.iter().enumerate() {
-            texture(ctx, &mut self.panels[i], PANELS[i], w, h, rgba);
-        }
-        self.bias = (reference.spp() > 0 && p.film.spp() > 0).then(|| {
-            let img = |f: &Film| Image { w, h, mean: f.mean(Buffer::Full), var: f.variance_of_mean(Buffer::Full) };
-            let (_, rel, floor) = bias(&img(reference), &img(&p.film));
-            (rel, floor)
+        let (film, reference) = (Arc::clone(&p.film), Arc::clone(reference));
+        let (tx, rx) = std::sync::mpsc::channel();
+        let wake = ctx.clone();
+        let spawned = std::thread::Builder::new().name("nimbus-compare".into()).spawn(move || {
+            let _ = tx.send(prepare(key, &film, &reference, tone, exposure, buffer));
+            wake.request_repaint();
         });
+        match spawned {
+            Ok(_) => self.pending = Some((key, rx)),
+            // No thread to be had: prepare here rather than show nothing.
+            Err(_) => {
+                let done = prepare(key, &p.film, p.reference.as_ref().unwrap(), tone, exposure, buffer);
+                self.upload(ctx, done);
+            }
+        }
+    }
+
+    /// Waits for the preparation under way (tests).
+    pub fn finish(&mut self, ctx: &egui::Context) {
+        if let Some((_, rx)) = self.pending.take()
+            && let Ok(done) = rx.recv()
+        {
+            self.upload(ctx, done);
+        }
+    }
+
+    fn upload(&mut self, ctx: &egui::Context, done: Prepared) {
+        self.key = Some(done.key);
+        texture(ctx, &mut self.reference, "nimbus-reference", done.size, &done.reference);
+        for (i, rgba) in done.panels.iter().enumerate() {
+            texture(ctx, &mut self.panels[i], PANELS[i], done.size, rgba);
+        }
+        self.error_scale = done.error_scale;
+        self.bias = done.bias;
     }
 
     /// The side panel: thumbnails (click to enlarge), the error scale, the bias.

@@ -8,7 +8,7 @@ pub mod worker;
 
 use crate::output::ToneMap;
 use crate::scene::{CameraPreset, SceneFile, default_up};
-use compare::CompareView;
+use compare::{CompareView, Layout};
 use eframe::egui;
 use engine::Buffer;
 use glam::Vec3;
@@ -47,6 +47,16 @@ impl Orbit {
         let (yaw, pitch) = (self.yaw_deg.to_radians(), self.pitch_deg.to_radians());
         target + self.distance * Vec3::new(pitch.cos() * yaw.sin(), pitch.sin(), pitch.cos() * yaw.cos())
     }
+}
+
+/// What a drag in the viewport moves.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ViewDrag {
+    Orbit,
+    /// Shift or the secondary button: the sun's azimuth (horizontal) and elevation.
+    Sun,
+    /// The divider of the wipe view, grabbed near it.
+    Wipe,
 }
 
 /// Something the user asked for, applied after the frame's layout.
@@ -133,7 +143,10 @@ pub struct NimbusApp {
     /// the window's own cost, shown in the status bar (goal: under 16 ms).
     frame_ms: (f32, f32, std::time::Instant),
     texture: Option<egui::TextureHandle>,
-    shown: Option<(u64, u32, f32, Buffer)>,
+    shown: Option<(u64, u32, f32, Buffer, ToneMap)>,
+    drag: ViewDrag,
+    /// The viewport's area in the last frame.
+    view_rect: egui::Rect,
 }
 
 impl NimbusApp {
@@ -169,6 +182,8 @@ impl NimbusApp {
                 .unwrap_or_default(),
             texture: None,
             shown: None,
+            drag: ViewDrag::Orbit,
+            view_rect: egui::Rect::NOTHING,
         };
         app.set_scene(restored.unwrap_or_else(default_scene));
         app.history.record(&app.scene);
@@ -225,6 +240,31 @@ impl NimbusApp {
     /// have samples.
     pub fn compare_bias(&self) -> Option<(f64, f64)> {
         self.compare_view.bias
+    }
+
+    /// How reference and prediction share the viewport in compare mode.
+    pub fn set_compare_layout(&mut self, layout: Layout) {
+        self.compare_view.layout = layout;
+    }
+
+    /// CPU milliseconds of the last frame's `ui` and the most over the last second.
+    pub fn frame_ms(&self) -> (f32, f32) {
+        (self.frame_ms.0, self.frame_ms.1)
+    }
+
+    /// The viewport's area on screen (the image is fitted and centred in it).
+    pub fn viewport_rect(&self) -> egui::Rect {
+        self.view_rect
+    }
+
+    /// The wipe divider, as a fraction of the image width.
+    pub fn wipe(&self) -> f32 {
+        self.compare_view.wipe
+    }
+
+    /// The sun's (elevation, azimuth) in degrees, as the light panel shows them.
+    pub fn sun_angles(&self) -> (f32, f32) {
+        (self.sun_elevation_deg, self.sun_azimuth_deg)
     }
 
     pub fn message(&self) -> Option<&(String, bool)> {
@@ -565,7 +605,7 @@ impl NimbusApp {
             });
             ui.add(egui::Slider::new(&mut self.orbit.distance, 1.0..=10.0).text("distance"));
             ui.add(egui::Slider::new(&mut self.scene.camera.fov_y_deg, 5.0..=90.0).text("field of view"));
-            ui.label("Drag the image to orbit, scroll to zoom.");
+            ui.label("Drag the image to orbit, scroll to zoom; Shift-drag or right-drag moves the sun.");
 
             ui.separator();
             ui.heading("Render");
@@ -579,6 +619,14 @@ impl NimbusApp {
                 ui.add(egui::Slider::new(&mut self.scene.render.p, 0.05..=1.0).text("prediction probability p"));
                 ui.checkbox(&mut self.compare, "compare with path tracing")
                     .on_hover_text("reference and prediction side by side, with the low, high and error buffers");
+                if self.compare {
+                    ui.horizontal(|ui| {
+                        let layout = &mut self.compare_view.layout;
+                        ui.selectable_value(layout, Layout::SideBySide, "side by side");
+                        ui.selectable_value(layout, Layout::Wipe, "wipe")
+                            .on_hover_text("both over the whole view; drag the divider");
+                    });
+                }
                 ui.label(match &self.scene.render.model {
                     Some(m) => format!("model: {m}"),
                     None => "model: shipped global model".to_string(),
@@ -608,7 +656,7 @@ impl NimbusApp {
     fn viewport(&mut self, ui: &mut egui::Ui) {
         let published = self.worker.mailbox.lock().unwrap().latest.clone();
         if let Some(p) = &published {
-            let key = (p.generation, p.film.spp(), self.exposure, self.view_buffer);
+            let key = (p.generation, p.film.spp(), self.exposure, self.view_buffer, self.tone);
             if self.shown != Some(key) {
                 let rgba = self.tone.to_rgba8(&p.film.mean(self.view_buffer), self.exposure);
                 let image = egui::ColorImage::from_rgba_unmultiplied(
@@ -627,29 +675,95 @@ impl NimbusApp {
         }
         let avail = ui.available_size();
         let (rect, response) = ui.allocate_exact_size(avail, egui::Sense::click_and_drag());
+        self.view_rect = rect;
         ui.painter().rect_filled(rect, 0.0, egui::Color32::from_gray(12));
         let side_by_side = self.compare && published.as_ref().is_some_and(|p| p.reference.is_some());
+        let k = self.scene.k;
+        // Where the wipe divider is on screen, when the wipe view is up.
+        let mut divider: Option<(egui::Rect, f32)> = None;
         if side_by_side {
             if let Some(p) = &published {
                 self.compare_view.update(ui.ctx(), p, self.tone, self.exposure, self.view_buffer);
             }
-            let half = rect.width() / 2.0;
-            let left = egui::Rect::from_min_size(rect.min, egui::vec2(half, rect.height()));
-            let right = egui::Rect::from_min_size(rect.min + egui::vec2(half, 0.0), egui::vec2(half, rect.height()));
-            let k = self.scene.k;
-            if let Some(t) = &self.compare_view.reference {
-                paint_fitted(ui, t, left, "path tracing (reference)");
-            }
-            if let Some(t) = &self.texture {
-                paint_fitted(ui, t, right, &format!("prediction at bounce {k}"));
+            let reference = self.compare_view.reference.clone();
+            match self.compare_view.layout {
+                Layout::SideBySide => {
+                    let half = rect.width() / 2.0;
+                    let left = egui::Rect::from_min_size(rect.min, egui::vec2(half, rect.height()));
+                    let right =
+                        egui::Rect::from_min_size(rect.min + egui::vec2(half, 0.0), egui::vec2(half, rect.height()));
+                    if let Some(t) = &reference {
+                        paint_fitted(ui, t, left, "path tracing (reference)");
+                    }
+                    if let Some(t) = &self.texture {
+                        paint_fitted(ui, t, right, &format!("prediction at bounce {k}"));
+                    }
+                }
+                Layout::Wipe => {
+                    if let (Some(r), Some(t)) = (&reference, &self.texture) {
+                        let shown = fitted(t, rect);
+                        let x = shown.min.x + self.compare_view.wipe * shown.width();
+                        let (left, right) = (
+                            egui::Rect::from_min_max(shown.min, egui::pos2(x, shown.max.y)),
+                            egui::Rect::from_min_max(egui::pos2(x, shown.min.y), shown.max),
+                        );
+                        paint_part(ui, r, shown, left);
+                        paint_part(ui, t, shown, right);
+                        let stroke = egui::Stroke::new(2.0, egui::Color32::from_gray(230));
+                        ui.painter().vline(x, shown.y_range(), stroke);
+                        ui.painter().circle(egui::pos2(x, shown.center().y), 7.0, egui::Color32::from_gray(40), stroke);
+                        caption(ui, rect.min + egui::vec2(8.0, 6.0), egui::Align2::LEFT_TOP, "path tracing (reference)");
+                        caption(
+                            ui,
+                            egui::pos2(rect.max.x - 8.0, rect.min.y + 6.0),
+                            egui::Align2::RIGHT_TOP,
+                            &format!("prediction at bounce {k}"),
+                        );
+                        divider = Some((shown, x));
+                    } else if let Some(t) = &self.texture {
+                        paint_fitted(ui, t, rect, "");
+                    }
+                }
             }
         } else if let Some(t) = &self.texture {
             paint_fitted(ui, t, rect, "");
         }
+        self.paint_sun(ui, rect);
+
+        // Dragging: the wipe divider when grabbed near it, the sun with Shift or the
+        // secondary button, otherwise the orbit.
+        if response.drag_started() {
+            // Where the button went down: a drag starts only after the pointer has moved.
+            let origin = ui.input(|i| i.pointer.press_origin()).or(response.interact_pointer_pos());
+            let near = |(shown, x): (egui::Rect, f32)| {
+                origin.is_some_and(|p| (p.x - x).abs() < 10.0 && shown.y_range().contains(p.y))
+            };
+            self.drag = if divider.is_some_and(near) {
+                ViewDrag::Wipe
+            } else if response.dragged_by(egui::PointerButton::Secondary) || ui.input(|i| i.modifiers.shift) {
+                ViewDrag::Sun
+            } else {
+                ViewDrag::Orbit
+            };
+        }
         if response.dragged() {
             let d = response.drag_delta();
-            self.orbit.yaw_deg -= d.x * 0.4;
-            self.orbit.pitch_deg = (self.orbit.pitch_deg + d.y * 0.4).clamp(-89.0, 89.0);
+            match self.drag {
+                ViewDrag::Wipe => {
+                    if let (Some((shown, _)), Some(p)) = (divider, response.interact_pointer_pos()) {
+                        self.compare_view.wipe = ((p.x - shown.min.x) / shown.width()).clamp(0.0, 1.0);
+                    }
+                }
+                ViewDrag::Sun => {
+                    self.sun_azimuth_deg = (self.sun_azimuth_deg + d.x * 0.4).rem_euclid(360.0);
+                    self.sun_elevation_deg = (self.sun_elevation_deg - d.y * 0.3).clamp(-89.0, 89.0);
+                    self.apply_sun();
+                }
+                ViewDrag::Orbit => {
+                    self.orbit.yaw_deg -= d.x * 0.4;
+                    self.orbit.pitch_deg = (self.orbit.pitch_deg + d.y * 0.4).clamp(-89.0, 89.0);
+                }
+            }
         }
         if response.hovered() {
             let scroll = ui.ctx().input(|i| i.smooth_scroll_delta.y);
@@ -657,6 +771,44 @@ impl NimbusApp {
                 self.orbit.distance = (self.orbit.distance * (-scroll * 0.002).exp()).clamp(1.0, 10.0);
             }
         }
+    }
+
+    /// Marks where the sun is, when it is in front of the camera: a disc at its
+    /// projection, or an arrow on the image's edge pointing toward it.
+    fn paint_sun(&self, ui: &egui::Ui, rect: egui::Rect) {
+        let Some(texture) = &self.texture else { return };
+        let shown = fitted(texture, rect);
+        let cam = &self.scene.camera;
+        let target = Vec3::from_array(cam.target);
+        let pos = Vec3::from_array(cam.position.unwrap_or([0.0, 0.0, 3.0]));
+        let forward = (target - pos).normalize_or(Vec3::NEG_Z);
+        let right = forward.cross(Vec3::from_array(cam.up)).normalize_or(Vec3::X);
+        let up = right.cross(forward);
+        let to_sun = -Vec3::from_array(self.scene.sun.direction).normalize_or(Vec3::NEG_Y);
+        let depth = to_sun.dot(forward);
+        let tan_half = (cam.fov_y_deg.to_radians() / 2.0).tan();
+        let aspect = shown.width() / shown.height().max(1.0);
+        let colour = egui::Color32::from_rgb(255, 214, 90);
+        if depth > 1e-3 {
+            let sx = to_sun.dot(right) / depth / (tan_half * aspect);
+            let sy = to_sun.dot(up) / depth / tan_half;
+            if sx.abs() <= 1.0 && sy.abs() <= 1.0 {
+                let p = shown.center() + egui::vec2(sx * shown.width() / 2.0, -sy * shown.height() / 2.0);
+                ui.painter().circle_stroke(p, 9.0, egui::Stroke::new(2.0, colour));
+                ui.painter().circle_filled(p, 4.0, colour);
+                return;
+            }
+        }
+        // Behind or outside the frame: a small arrow on the frame's edge.
+        let dir = egui::vec2(to_sun.dot(right), -to_sun.dot(up));
+        if dir.length() < 1e-4 {
+            return;
+        }
+        let dir = dir.normalized();
+        let half = shown.size() / 2.0 - egui::vec2(14.0, 14.0);
+        let t = (half.x / dir.x.abs().max(1e-6)).min(half.y / dir.y.abs().max(1e-6));
+        let tip = shown.center() + dir * t;
+        ui.painter().arrow(tip - dir * 14.0, dir * 12.0, egui::Stroke::new(2.0, colour));
     }
 
     fn status(&self, ui: &mut egui::Ui) {
@@ -741,22 +893,31 @@ impl eframe::App for NimbusApp {
     }
 }
 
-/// Draws a texture into `rect`, scaled to fit and centred, with a caption on top.
-fn paint_fitted(ui: &egui::Ui, t: &egui::TextureHandle, rect: egui::Rect, caption: &str) {
+/// Where a texture lands in `rect`: scaled to fit and centred.
+fn fitted(t: &egui::TextureHandle, rect: egui::Rect) -> egui::Rect {
     let size = t.size_vec2();
     let scale = (rect.width() / size.x).min(rect.height() / size.y);
-    let shown = egui::Rect::from_center_size(rect.center(), size * scale);
+    egui::Rect::from_center_size(rect.center(), size * scale)
+}
+
+/// Draws a texture into `rect`, scaled to fit and centred, with a caption on top.
+fn paint_fitted(ui: &egui::Ui, t: &egui::TextureHandle, rect: egui::Rect, text: &str) {
     let uv = egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0));
-    ui.painter().image(t.id(), shown, uv, egui::Color32::WHITE);
-    if !caption.is_empty() {
-        ui.painter().text(
-            rect.min + egui::vec2(8.0, 6.0),
-            egui::Align2::LEFT_TOP,
-            caption,
-            egui::FontId::proportional(14.0),
-            egui::Color32::from_gray(220),
-        );
+    ui.painter().image(t.id(), fitted(t, rect), uv, egui::Color32::WHITE);
+    if !text.is_empty() {
+        caption(ui, rect.min + egui::vec2(8.0, 6.0), egui::Align2::LEFT_TOP, text);
     }
+}
+
+/// Draws the part `part` of a texture laid out over `shown`.
+fn paint_part(ui: &egui::Ui, t: &egui::TextureHandle, shown: egui::Rect, part: egui::Rect) {
+    let uv = |p: egui::Pos2| egui::pos2((p.x - shown.min.x) / shown.width(), (p.y - shown.min.y) / shown.height());
+    let uv = egui::Rect::from_min_max(uv(part.min), uv(part.max));
+    ui.painter().image(t.id(), part, uv, egui::Color32::WHITE);
+}
+
+fn caption(ui: &egui::Ui, at: egui::Pos2, align: egui::Align2, text: &str) {
+    ui.painter().text(at, align, text, egui::FontId::proportional(14.0), egui::Color32::from_gray(220));
 }
 
 /// Opens the window; returns when it is closed.
