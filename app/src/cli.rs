@@ -94,6 +94,10 @@ pub struct RenderArgs {
     /// The global model (.safetensors + .json sidecar); default: the shipped model.
     #[arg(long)]
     pub model: Option<PathBuf>,
+    /// Light transport for reference renders: path (default) or bdpt (volumetric
+    /// bidirectional path tracing with MIS); overrides the scene's render.integrator.
+    #[arg(long, value_name = "path|bdpt")]
+    pub integrator: Option<String>,
 }
 
 #[derive(Args, Debug)]
@@ -322,6 +326,13 @@ fn render(args: RenderArgs) -> Result<()> {
     if let Some(p) = args.p {
         file.render.p = p;
     }
+    if let Some(i) = &args.integrator {
+        file.render.integrator = i.clone();
+    }
+    file.validate()?;
+    if file.render.integrator == "bdpt" && file.render.mode == "predict" {
+        eprintln!("note: prediction mode path traces its low orders; --integrator bdpt applies to reference renders");
+    }
     if let Some(m) = &args.model {
         // Relative to where nimbus runs, like every other path on the command line.
         file.render.model = Some(std::path::absolute(m)?.display().to_string());
@@ -345,6 +356,9 @@ fn render(args: RenderArgs) -> Result<()> {
         integrator = engine::Integrator::new(settings, Some(pred))?;
     }
     let mode = match integrator.settings().mode {
+        engine::Mode::Reference if matches!(integrator.technique(), engine::Technique::Bdpt(_)) => {
+            "reference (BDPT)".to_string()
+        }
         engine::Mode::Reference => "reference".to_string(),
         engine::Mode::Predict { p } => format!("predict (k {}, p {p})", integrator.settings().k),
     };
@@ -368,6 +382,10 @@ fn render(args: RenderArgs) -> Result<()> {
         "threads": threads,
         "stopped_early": outcome.stopped,
         "mean_full": film.average(Buffer::Full),
+        "relative_noise": film.relative_noise(Buffer::Full),
+        // Inverse of (relative variance x seconds): higher is better, comparable
+        // between integrators on the same scene and machine.
+        "efficiency": 1.0 / (film.relative_noise(Buffer::Full).powi(2) * outcome.render_secs).max(1e-300),
         "mode": mode,
         "out": args.out,
     });

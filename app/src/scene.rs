@@ -213,11 +213,21 @@ pub struct RenderDesc {
     /// relative to the scene file. Default: the shipped model, compiled into nimbus.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub model: Option<String>,
+    /// Light transport of the reference mode: "path" (unidirectional path tracing,
+    /// the default) or "bdpt" (volumetric bidirectional path tracing with MIS).
+    /// Prediction mode always path traces its low orders (BDPT prediction between
+    /// subpaths is not implemented yet).
+    #[serde(skip_serializing_if = "is_path")]
+    pub integrator: String,
+}
+
+fn is_path(s: &str) -> bool {
+    s == "path"
 }
 
 impl Default for RenderDesc {
     fn default() -> Self {
-        RenderDesc { mode: "reference".into(), p: 0.25, model: None }
+        RenderDesc { mode: "reference".into(), p: 0.25, model: None, integrator: "path".into() }
     }
 }
 
@@ -380,6 +390,12 @@ impl SceneFile {
                 )));
             }
         }
+        if !matches!(self.render.integrator.as_str(), "path" | "bdpt") {
+            return Err(SceneError::Invalid(format!(
+                "render.integrator = \"{}\" is unknown; choose path or bdpt",
+                self.render.integrator
+            )));
+        }
         if !(self.render.p > 0.0 && self.render.p <= 1.0) {
             return Err(range_err("render.p", self.render.p, "(0, 1]"));
         }
@@ -476,7 +492,12 @@ impl SceneFile {
     /// The integrator of the reference mode, or of prediction mode with a given
     /// predictor.
     pub fn integrator_with(&self, predictor: Option<Arc<dyn InScatterPredictor>>) -> Result<Integrator, SceneError> {
-        Integrator::new(self.settings(), predictor).map_err(|e| SceneError::Invalid(format!("render: {e}")))
+        let err = |e: engine::integrator::IntegratorError| SceneError::Invalid(format!("render: {e}"));
+        let integrator = Integrator::new(self.settings(), predictor).map_err(err)?;
+        if self.render.integrator == "bdpt" && self.render.mode == "reference" {
+            return integrator.with_technique(engine::Technique::Bdpt(Default::default())).map_err(err);
+        }
+        Ok(integrator)
     }
 
     /// Where `render.model` points (resolved against the scene file), if set.

@@ -120,6 +120,22 @@ impl Film {
         &self.layers[buffer.index()].sum
     }
 
+    /// Relative standard error of the image in `b`: sqrt(sum of the per-pixel
+    /// variances of the mean / sum of the squared means), over pixels with light
+    /// (luminance as the mean of the channels). Zero before any light arrives.
+    pub fn relative_noise(&self, b: Buffer) -> f64 {
+        let (mean, var) = (self.mean(b), self.variance_of_mean(b));
+        let (mut num, mut den) = (0.0f64, 0.0f64);
+        for (m, v) in mean.iter().zip(&var) {
+            let l = (m[0] + m[1] + m[2]) as f64 / 3.0;
+            if l > 0.0 {
+                num += (v[0] + v[1] + v[2]) as f64 / 3.0;
+                den += l * l;
+            }
+        }
+        if den > 0.0 { (num / den).sqrt() } else { 0.0 }
+    }
+
     /// Per-pixel, per-channel variance of the pixel ESTIMATE (the sample variance
     /// divided by spp): the "variance" of CONVENTIONS.md's TTUV.
     pub fn variance_of_mean(&self, buffer: Buffer) -> Vec<[f32; 3]> {

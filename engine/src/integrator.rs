@@ -61,6 +61,19 @@ pub enum IntegratorError {
     NoPredictor,
     #[error("prediction mode needs a sun: the model predicts light from a directional light")]
     NoSun,
+    #[error("prediction at bounce k is not available with BDPT yet: use the path tracer for prediction")]
+    BdptPredict,
+    #[error("{0}")]
+    BadBdpt(String),
+}
+
+/// The light transport algorithm.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Technique {
+    /// Unidirectional path tracing with next event estimation (this module).
+    PathTracing,
+    /// Volumetric bidirectional path tracing ([`crate::bdpt`]).
+    Bdpt(crate::bdpt::BdptSettings),
 }
 
 /// One path's contribution, split by scattering order.
@@ -81,12 +94,13 @@ impl PathSample {
 }
 
 /// Russian roulette on throughput starts after this many scattering events.
-const RR_MIN_ORDER: u32 = 3;
+pub(crate) const RR_MIN_ORDER: u32 = 3;
 
 #[derive(Clone)]
 pub struct Integrator {
     settings: RenderSettings,
     predictor: Option<Arc<dyn InScatterPredictor>>,
+    technique: Technique,
 }
 
 impl std::fmt::Debug for Integrator {
@@ -94,6 +108,7 @@ impl std::fmt::Debug for Integrator {
         f.debug_struct("Integrator")
             .field("settings", &self.settings)
             .field("predictor", &self.predictor.as_ref().map(|p| p.name().to_string()))
+            .field("technique", &self.technique)
             .finish()
     }
 }
@@ -114,7 +129,23 @@ impl Integrator {
                 return Err(IntegratorError::NoPredictor);
             }
         }
-        Ok(Integrator { settings, predictor })
+        Ok(Integrator { settings, predictor, technique: Technique::PathTracing })
+    }
+
+    /// The same integrator with another light transport algorithm.
+    pub fn with_technique(mut self, technique: Technique) -> Result<Self, IntegratorError> {
+        if let Technique::Bdpt(b) = technique {
+            if matches!(self.settings.mode, Mode::Predict { .. }) {
+                return Err(IntegratorError::BdptPredict);
+            }
+            b.validate().map_err(IntegratorError::BadBdpt)?;
+        }
+        self.technique = technique;
+        Ok(self)
+    }
+
+    pub fn technique(&self) -> Technique {
+        self.technique
     }
 
     pub fn settings(&self) -> &RenderSettings {
@@ -137,6 +168,9 @@ impl Integrator {
     /// split by scattering order.
     #[inline]
     pub fn trace(&self, scene: &Scene, o: Vec3, d: Vec3, rng: &mut Rng) -> PathSample {
+        if let Technique::Bdpt(b) = &self.technique {
+            return crate::bdpt::trace(&self.settings, b, scene, o, d, rng);
+        }
         let mut out = PathSample::default();
         match scene.medium.sample_free_flight(o, d, f32::INFINITY, rng) {
             FreeFlight::Escaped => out.direct = scene.sky.radiance,

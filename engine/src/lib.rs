@@ -5,6 +5,7 @@
 //! functions of the thesis, and accumulation buffers split by scattering order
 //! (CONVENTIONS.md). A learned predictor plugs in through [`InScatterPredictor`].
 
+pub mod bdpt;
 pub mod camera;
 pub mod film;
 pub mod grid;
@@ -21,7 +22,8 @@ pub mod stats;
 pub use camera::Camera;
 pub use film::{Buffer, Film};
 pub use grid::{Bounds3, DensityGrid, GridError};
-pub use integrator::{Integrator, Mode, PathSample, RenderSettings, Scene};
+pub use bdpt::{BdptSettings, MisHeuristic};
+pub use integrator::{Integrator, Mode, PathSample, RenderSettings, Scene, Technique};
 pub use light::{Sky, Sun};
 pub use medium::{FreeFlight, Medium};
 pub use phase::PhaseFunction;

@@ -51,6 +51,19 @@ pub fn uniform_cone_pdf(cos_max: f32) -> f32 {
     1.0 / (2.0 * PI * (1.0 - cos_max))
 }
 
+/// Uniform point on the unit disk (polar mapping: r = sqrt(u.x), phi = 2 pi u.y).
+#[inline]
+pub fn sample_uniform_disk(u: Vec2) -> Vec2 {
+    let r = u.x.sqrt();
+    let phi = 2.0 * PI * u.y;
+    Vec2::new(r * phi.cos(), r * phi.sin())
+}
+
+#[inline]
+pub fn uniform_disk_pdf() -> f32 {
+    1.0 / PI
+}
+
 /// An orthonormal basis (t, b, n) around unit `n` (Duff et al. 2017, branchless).
 #[inline]
 pub fn coordinate_system(n: Vec3) -> (Vec3, Vec3) {
@@ -134,5 +147,28 @@ mod chi2_tests {
             let pdf = if cos_max == -1.0 { uniform_sphere_pdf() } else { uniform_cone_pdf(cos_max) };
             assert!((pdf * 2.0 * PI * (1.0 - cos_max) - 1.0).abs() < 1e-3);
         }
+    }
+
+    /// Uniform disk sampling: 10^6 points binned in 20 rings of equal area by 16
+    /// sectors; every cell expects the same count.
+    #[test]
+    fn disk_chi_square() {
+        let (nr, np) = (20usize, 16usize);
+        let mut obs = vec![0.0; nr * np];
+        let mut rng = Rng::new(78, 0, 0);
+        let n = 1_000_000;
+        for _ in 0..n {
+            let p = sample_uniform_disk(rng.uniform2());
+            let r2 = p.length_squared();
+            assert!(r2 <= 1.0 + 1e-6);
+            let ir = ((r2 * nr as f32) as usize).min(nr - 1);
+            let phi = p.y.atan2(p.x).rem_euclid(2.0 * PI);
+            let ip = ((phi / (2.0 * PI) * np as f32) as usize).min(np - 1);
+            obs[ir * np + ip] += 1.0;
+        }
+        let exp = vec![n as f64 / (nr * np) as f64; nr * np];
+        let r = chi2_test(&obs, &exp, 5.0);
+        assert!(r.p_value > 0.01, "{r:?}");
+        assert!((uniform_disk_pdf() * PI - 1.0).abs() < 1e-6);
     }
 }

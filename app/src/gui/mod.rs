@@ -614,6 +614,14 @@ impl NimbusApp {
                 ui.radio_value(&mut self.scene.render.mode, "predict".to_string(), "prediction at bounce k")
                     .on_hover_text("vertices 1 .. k-1 path traced, the learned model predicts the rest at vertex k");
             });
+            if self.scene.render.mode == "reference" {
+                ui.horizontal(|ui| {
+                    ui.label("algorithm");
+                    ui.selectable_value(&mut self.scene.render.integrator, "path".to_string(), "unidirectional");
+                    ui.selectable_value(&mut self.scene.render.integrator, "bdpt".to_string(), "bidirectional")
+                        .on_hover_text("volumetric BDPT: light subpaths from the sun joined to camera subpaths, with MIS");
+                });
+            }
             ui.add(egui::Slider::new(&mut self.scene.k, 1..=8).text("k (first high order)"));
             if self.scene.render.mode == "predict" {
                 ui.add(egui::Slider::new(&mut self.scene.render.p, 0.05..=1.0).text("prediction probability p"));

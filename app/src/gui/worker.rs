@@ -109,17 +109,7 @@ pub fn spawn(
 }
 
 fn relative_noise(film: &Film) -> f64 {
-    let mean = film.mean(Buffer::Full);
-    let var = film.variance_of_mean(Buffer::Full);
-    let (mut num, mut den) = (0.0f64, 0.0f64);
-    for (m, v) in mean.iter().zip(&var) {
-        let l = (m[0] + m[1] + m[2]) as f64 / 3.0;
-        if l > 0.0 {
-            num += (v[0] + v[1] + v[2]) as f64 / 3.0;
-            den += l * l;
-        }
-    }
-    if den > 0.0 { (num / den).sqrt() } else { 0.0 }
+    film.relative_noise(Buffer::Full)
 }
 
 fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Mailbox>>, wake: impl Fn()) {

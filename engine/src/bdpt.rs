@@ -1,0 +1,446 @@
+//! Volumetric bidirectional path tracing (Veach 1997, ch. 10; Lafortune and Willems
+//! 1996 for participating media) for the scenes of the path tracer: a heterogeneous
+//! cloud in vacuum, a directional sun (optionally a small cone), a constant sky and
+//! a pinhole camera.
+//!
+//! Each camera sample traces one light subpath and one camera subpath:
+//! - the light subpath starts on a disk perpendicular to the sun's direction that
+//!   covers the cloud's bounding sphere (a parallel beam, area pdf 1 / (pi R^2)) and
+//!   scatters by delta tracking and phase sampling, up to `max_light_vertices`;
+//! - the camera subpath is the path tracer's walk (delta tracking, phase sampling,
+//!   Russian roulette on throughput) and at every vertex it does next event
+//!   estimation toward the sun and, at its first `max_camera_connect` vertices,
+//!   connects to every light vertex with a ratio-tracked transmittance.
+//!
+//! A path with n scattering vertices x_1 .. x_n can therefore come from n strategies,
+//! told apart by c, the number of its vertices the camera walk made: c = n is next
+//! event estimation, c < n connects x_c to the light vertex x_{c+1}. (Light tracing
+//! onto the image, c = 0, is not used: it needs splatting into arbitrary pixels, and
+//! in a cloud seen from outside it rarely helps. The sun is a delta light or a tiny
+//! cone that only next event estimation reaches, as in the path tracer, so an
+//! escaping camera path never hits it; the sky is reached only by escaping camera
+//! paths, with weight one.)
+//!
+//! Multiple importance sampling weighs the strategies by the balance or power
+//! heuristic. The heuristic's per-vertex densities leave out the transmittance of the
+//! edge that sampled the vertex: in a heterogeneous medium it is unknown in closed
+//! form. Any weights that are functions of the path alone and sum to one over the
+//! strategies that can make it keep the estimator unbiased (Veach 1997, sec. 9.2), so
+//! this costs variance at most, never bias; the densities kept (phase pdf, sigma_t at
+//! the vertex, inverse squared distance) are the ones that make close connections and
+//! grazing turns expensive. Strategies the caps exclude (camera depth above
+//! `max_camera_connect`, light depth above `max_light_vertices`) get no weight.
+//!
+//! Every contribution keeps the path tracer's order bookkeeping: a path with n
+//! scattering vertices is order n, and goes to the low or high buffer by k.
+
+use crate::integrator::{PathSample, RR_MIN_ORDER, RenderSettings, Scene};
+use crate::medium::FreeFlight;
+use crate::rng::Rng;
+use crate::sampling::{coordinate_system, sample_uniform_disk};
+use glam::Vec3;
+use std::f32::consts::PI;
+
+/// How strategies are weighed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MisHeuristic {
+    Balance,
+    /// Exponent 2 (Veach's recommendation).
+    Power,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BdptSettings {
+    pub heuristic: MisHeuristic,
+    /// Camera vertices 1 ..= this connect to the light subpath; deeper ones still do
+    /// next event estimation and see the sky.
+    pub max_camera_connect: u32,
+    /// Scattering vertices of the light subpath (1 ..= MAX_LIGHT_VERTICES).
+    pub max_light_vertices: u32,
+}
+
+impl Default for BdptSettings {
+    fn default() -> Self {
+        BdptSettings { heuristic: MisHeuristic::Power, max_camera_connect: 8, max_light_vertices: 8 }
+    }
+}
+
+/// The largest light subpath (fixed storage, no allocation per sample).
+pub const MAX_LIGHT_VERTICES: u32 = 32;
+/// Camera vertices kept for the weights: the last RING of the walk.
+const RING: usize = 64;
+const _: () = assert!(RING >= MAX_LIGHT_VERTICES as usize + 4);
+
+impl BdptSettings {
+    pub fn validate(&self) -> Result<(), String> {
+        if !(1..=MAX_LIGHT_VERTICES).contains(&self.max_light_vertices) {
+            return Err(format!(
+                "BDPT light subpath length must lie in 1 ..= {MAX_LIGHT_VERTICES}, got {}",
+                self.max_light_vertices
+            ));
+        }
+        if self.max_camera_connect < 1 {
+            return Err("BDPT must connect at least the first camera vertex".into());
+        }
+        Ok(())
+    }
+}
+
+/// Which strategy made a contribution.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Strategy {
+    /// The camera ray left the cloud: the sky seen through it (order 0).
+    Direct,
+    /// The camera walk escaped to the sky after `order` scattering events.
+    Sky,
+    /// Next event estimation toward the sun from camera vertex `order` (c = n).
+    NextEvent,
+    /// Camera vertex `camera` connected to light vertex `light` (c + l = n).
+    Connect { camera: u32, light: u32 },
+}
+
+/// One unweighted contribution of a strategy and its MIS weight.
+#[derive(Clone, Copy, Debug)]
+pub struct Contribution {
+    pub order: u32,
+    pub strategy: Strategy,
+    pub value: Vec3,
+    pub weight: f32,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+struct Vertex {
+    x: Vec3,
+    /// Unit direction toward the vertex before it on its own subpath (or the sun).
+    wo: Vec3,
+    /// Throughput of the subpath up to and including this vertex's albedo.
+    beta: f32,
+    sigma_t: f32,
+}
+
+struct LightPath {
+    verts: [Vertex; MAX_LIGHT_VERTICES as usize],
+    len: usize,
+    /// Direction the sun's light travels in (sampled within the sun's cone).
+    beam: Vec3,
+    /// Area of the beam's disk, pi R^2: the light vertices' throughputs are per unit
+    /// sun radiance times this.
+    area: f32,
+}
+
+/// The camera subpath's latest vertices, and the camera position as vertex 0.
+struct CameraRing {
+    origin: Vec3,
+    verts: [Vertex; RING],
+}
+
+impl CameraRing {
+    #[inline]
+    fn get(&self, i: usize) -> &Vertex {
+        &self.verts[i % RING]
+    }
+}
+
+/// One full path for the weights: x_0 the camera, x_1 .. x_c from the camera walk,
+/// x_{c+1} .. x_n the light walk's vertices l .. 1, and the direction toward the sun
+/// at x_n.
+struct PathView<'a> {
+    cam: &'a CameraRing,
+    light: Option<&'a LightPath>,
+    c: usize,
+    n: usize,
+    to_sun: Vec3,
+}
+
+impl PathView<'_> {
+    #[inline]
+    fn vertex(&self, i: usize) -> (Vec3, f32) {
+        if i == 0 {
+            (self.cam.origin, 0.0)
+        } else if i <= self.c {
+            let v = self.cam.get(i);
+            (v.x, v.sigma_t)
+        } else {
+            let v = &self.light.expect("a light vertex")[self.n - i];
+            (v.x, v.sigma_t)
+        }
+    }
+}
+
+impl std::ops::Index<usize> for LightPath {
+    type Output = Vertex;
+    fn index(&self, i: usize) -> &Vertex {
+        &self.verts[i]
+    }
+}
+
+/// The heuristic's density of x_i sampled from x_{i-1} by the camera walk (i >= 2).
+#[inline]
+fn q_camera(p: &PathView, phase: crate::phase::PhaseFunction, i: usize) -> f64 {
+    let (a, _) = p.vertex(i - 1);
+    let (b, _) = p.vertex(i - 2);
+    let (t, sigma) = p.vertex(i);
+    let (to_prev, to_next) = (b - a, t - a);
+    let d2 = to_next.length_squared().max(1e-12);
+    let pdf = phase.pdf(to_prev.normalize_or_zero(), to_next / d2.sqrt());
+    pdf as f64 * sigma as f64 / d2 as f64
+}
+
+/// The heuristic's density of x_i sampled by the light walk: from the beam's disk for
+/// i = n, else from x_{i+1}.
+#[inline]
+fn q_light(p: &PathView, phase: crate::phase::PhaseFunction, area: f32, i: usize) -> f64 {
+    let (t, sigma) = p.vertex(i);
+    if i == p.n {
+        return sigma as f64 / area as f64;
+    }
+    let (a, _) = p.vertex(i + 1);
+    let from = if i + 1 == p.n { p.to_sun } else { (p.vertex(i + 2).0 - a).normalize_or_zero() };
+    let to_next = t - a;
+    let d2 = to_next.length_squared().max(1e-12);
+    phase.pdf(from, to_next / d2.sqrt()) as f64 * sigma as f64 / d2 as f64
+}
+
+/// The MIS weight of strategy c for the path `p` (camera vertices 1 ..= c).
+fn mis_weight(p: &PathView, phase: crate::phase::PhaseFunction, area: f32, b: &BdptSettings) -> f32 {
+    let (c, n) = (p.c, p.n);
+    let (max_c, max_l) = (b.max_camera_connect as usize, b.max_light_vertices as usize);
+    let power = |r: f64| match b.heuristic {
+        MisHeuristic::Balance => r,
+        MisHeuristic::Power => r * r,
+    };
+    let mut sum = 1.0f64;
+    // Strategies with fewer camera vertices: x_{c'+1} .. x_c come from the light.
+    let mut ratio = 1.0f64;
+    for cp in (1..c).rev() {
+        if n - cp > max_l {
+            break;
+        }
+        ratio *= q_light(p, phase, area, cp + 1) / q_camera(p, phase, cp + 1);
+        if cp <= max_c {
+            sum += power(ratio);
+        }
+    }
+    // Strategies with more camera vertices: x_{c+1} .. x_{c'} come from the camera.
+    let mut ratio = 1.0f64;
+    for cp in c + 1..=n {
+        ratio *= q_camera(p, phase, cp) / q_light(p, phase, area, cp);
+        if cp == n || cp <= max_c {
+            sum += power(ratio);
+        }
+    }
+    let w = 1.0 / sum;
+    if w.is_finite() { w as f32 } else { 0.0 }
+}
+
+fn light_path(b: &BdptSettings, scene: &Scene, sun: &crate::light::Sun, rng: &mut Rng) -> LightPath {
+    let medium = &scene.medium;
+    let bounds = medium.bounds();
+    let (center, radius) = (bounds.center(), 0.5 * bounds.extent().length() * 1.0001 + 1e-4);
+    let beam = -sun.sample_wi(rng.uniform2());
+    let (t1, t2) = coordinate_system(beam);
+    let q = sample_uniform_disk(rng.uniform2()) * radius;
+    let origin = center + t1 * q.x + t2 * q.y - beam * (1.01 * radius);
+    let mut lp =
+        LightPath { verts: [Vertex::default(); MAX_LIGHT_VERTICES as usize], len: 0, beam, area: PI * radius * radius };
+    let FreeFlight::Collision { t } = medium.sample_free_flight(origin, beam, f32::INFINITY, rng) else {
+        return lp;
+    };
+    let (mut x, mut wo, mut beta) = (origin + beam * t, -beam, medium.albedo());
+    let phase = medium.phase();
+    loop {
+        lp.verts[lp.len] = Vertex { x, wo, beta, sigma_t: medium.sigma_t(x) };
+        lp.len += 1;
+        if lp.len >= b.max_light_vertices as usize || beta <= 0.0 {
+            return lp;
+        }
+        if lp.len as u32 >= RR_MIN_ORDER && beta < 1.0 {
+            let q = beta.max(0.05);
+            if rng.uniform() >= q {
+                return lp;
+            }
+            beta /= q;
+        }
+        let wi = phase.sample(wo, rng.uniform2()).wi;
+        match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {
+            FreeFlight::Escaped => return lp,
+            FreeFlight::Collision { t } => {
+                x += wi * t;
+                wo = -wi;
+                beta *= medium.albedo();
+            }
+        }
+    }
+}
+
+/// Traces one camera sample along o + t d and reports every strategy's unweighted
+/// contribution with its weight (their weighted sum is the sample's estimate).
+pub fn trace_strategies(
+    settings: &RenderSettings,
+    b: &BdptSettings,
+    scene: &Scene,
+    o: Vec3,
+    d: Vec3,
+    rng: &mut Rng,
+    sink: &mut impl FnMut(Contribution),
+) {
+    let medium = &scene.medium;
+    let phase = medium.phase();
+    let max_order = settings.max_order.unwrap_or(u32::MAX);
+    let light = scene.sun.as_ref().map(|sun| light_path(b, scene, sun, rng));
+    let t = match medium.sample_free_flight(o, d, f32::INFINITY, rng) {
+        FreeFlight::Escaped => {
+            sink(Contribution { order: 0, strategy: Strategy::Direct, value: scene.sky.radiance, weight: 1.0 });
+            return;
+        }
+        FreeFlight::Collision { t } => t,
+    };
+    let mut cam = CameraRing { origin: o, verts: [Vertex::default(); RING] };
+    let (mut x, mut wo, mut beta, mut order) = (o + d * t, -d, medium.albedo(), 1u32);
+    loop {
+        if order > max_order || beta <= 0.0 {
+            return;
+        }
+        let c = order as usize;
+        cam.verts[c % RING] = Vertex { x, wo, beta, sigma_t: medium.sigma_t(x) };
+        if let (Some(sun), Some(lp)) = (&scene.sun, &light) {
+            // c = n: next event estimation toward the sun.
+            let wi = sun.sample_wi(rng.uniform2());
+            let f = beta * phase.eval(wo, wi);
+            if f > 0.0 {
+                let tr = medium.transmittance_ratio(x, wi, f32::INFINITY, rng);
+                if tr > 0.0 {
+                    let view = PathView { cam: &cam, light: None, c, n: c, to_sun: wi };
+                    let weight = mis_weight(&view, phase, lp.area, b);
+                    sink(Contribution { order, strategy: Strategy::NextEvent, value: sun.radiance() * (f * tr), weight });
+                }
+            }
+            // c < n: connect to each light vertex.
+            if order <= b.max_camera_connect {
+                for j in 1..=lp.len {
+                    let n = c + j;
+                    if n as u64 > max_order as u64 {
+                        break;
+                    }
+                    let y = &lp.verts[j - 1];
+                    let dv = y.x - x;
+                    let dist2 = dv.length_squared();
+                    if dist2 <= 1e-12 {
+                        continue;
+                    }
+                    let dist = dist2.sqrt();
+                    let dir = dv / dist;
+                    let f = beta * phase.eval(wo, dir) * phase.eval(y.wo, -dir) * y.beta * lp.area / dist2;
+                    if !(f > 0.0 && f.is_finite()) {
+                        continue;
+                    }
+                    let tr = medium.transmittance_ratio(x, dir, dist, rng);
+                    if tr <= 0.0 {
+                        continue;
+                    }
+                    let view = PathView { cam: &cam, light: Some(lp), c, n, to_sun: -lp.beam };
+                    let weight = mis_weight(&view, phase, lp.area, b);
+                    sink(Contribution {
+                        order: n as u32,
+                        strategy: Strategy::Connect { camera: order, light: j as u32 },
+                        value: sun.radiance() * (f * tr),
+                        weight,
+                    });
+                }
+            }
+        }
+        if order >= RR_MIN_ORDER && beta < 1.0 {
+            let q = beta.max(0.05);
+            if rng.uniform() >= q {
+                return;
+            }
+            beta /= q;
+        }
+        let wi = phase.sample(wo, rng.uniform2()).wi;
+        match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {
+            FreeFlight::Escaped => {
+                if !scene.sky.is_black() {
+                    sink(Contribution { order, strategy: Strategy::Sky, value: scene.sky.radiance * beta, weight: 1.0 });
+                }
+                return;
+            }
+            FreeFlight::Collision { t } => {
+                x += wi * t;
+                wo = -wi;
+                order += 1;
+                beta *= medium.albedo();
+            }
+        }
+    }
+}
+
+/// One camera sample's MIS-weighted estimate, split by order into the buffers.
+pub fn trace(settings: &RenderSettings, b: &BdptSettings, scene: &Scene, o: Vec3, d: Vec3, rng: &mut Rng) -> PathSample {
+    let mut out = PathSample::default();
+    let k = settings.k;
+    trace_strategies(settings, b, scene, o, d, rng, &mut |c| {
+        let v = c.value * c.weight;
+        if c.order == 0 {
+            out.direct += v;
+        } else if c.order >= k {
+            out.high += v;
+        } else {
+            out.low += v;
+        }
+    });
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::phase::PhaseFunction;
+
+    /// The weights of all strategies that can make a path sum to one, for random
+    /// paths of every length, with and without the caps binding, for both heuristics.
+    #[test]
+    fn weights_sum_to_one() {
+        let mut rng = Rng::new(5, 0, 0);
+        let phase = PhaseFunction::HenyeyGreenstein { g: 0.7 };
+        for heuristic in [MisHeuristic::Balance, MisHeuristic::Power] {
+            for (max_c, max_l) in [(8u32, 8u32), (2, 3), (1, 1), (20, 32)] {
+                let b = BdptSettings { heuristic, max_camera_connect: max_c, max_light_vertices: max_l };
+                for n in 1..=14usize {
+                    for _ in 0..20 {
+                        let pts: Vec<(Vec3, f32)> = (0..=n)
+                            .map(|_| (Vec3::from_array(std::array::from_fn(|_| rng.uniform())), 0.5 + 10.0 * rng.uniform()))
+                            .collect();
+                        let to_sun = crate::sampling::sample_uniform_sphere(rng.uniform2());
+                        let area = 2.0;
+                        let mut total = 0.0f64;
+                        for c in 1..=n {
+                            let l = n - c;
+                            let feasible = c == n || (c <= max_c as usize && l <= max_l as usize);
+                            if !feasible {
+                                continue;
+                            }
+                            // Build the two subpaths the strategy would have made.
+                            let mut cam = CameraRing { origin: pts[0].0, verts: [Vertex::default(); RING] };
+                            for i in 1..=c {
+                                cam.verts[i % RING] = Vertex { x: pts[i].0, sigma_t: pts[i].1, ..Default::default() };
+                            }
+                            let mut lp = LightPath {
+                                verts: [Vertex::default(); MAX_LIGHT_VERTICES as usize],
+                                len: l,
+                                beam: -to_sun,
+                                area,
+                            };
+                            for j in 1..=l {
+                                let p = pts[n + 1 - j];
+                                lp.verts[j - 1] = Vertex { x: p.0, sigma_t: p.1, ..Default::default() };
+                            }
+                            let view = PathView { cam: &cam, light: (l > 0).then_some(&lp), c, n, to_sun };
+                            total += mis_weight(&view, phase, area, &b) as f64;
+                        }
+                        assert!((total - 1.0).abs() < 1e-4, "n {n} caps ({max_c}, {max_l}) {heuristic:?}: {total}");
+                    }
+                }
+            }
+        }
+    }
+}
