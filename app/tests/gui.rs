@@ -204,3 +204,43 @@ fn window_snapshot() {
     h.mask(egui::Rect::from_min_max(egui::pos2(0.0, view.max.y), egui::pos2(1200.0, 800.0)));
     h.snapshot("window");
 }
+
+/// Exports write files: the image as multi-layer EXR and PNG once a pass exists, the
+/// cloud as VDB, the scene as TOML that reads back to the same scene.
+#[test]
+fn export_writes_files() {
+    use app::gui::Target;
+    let dir = std::env::temp_dir().join(format!("nimbus-gui-export-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut h = harness();
+    let mut s = h.state().scene().clone();
+    (s.camera.width, s.camera.height, s.grid.resolution) = (24, 16, 24);
+    h.state_mut().set_scene(s);
+    let start = std::time::Instant::now();
+    while h.state().rendered().is_none_or(|r| r.1 < 2) {
+        assert!(start.elapsed().as_secs() < 120, "the worker did not render");
+        h.run_steps(1);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    for (target, name) in [(Target::Exr, "i.exr"), (Target::Png, "i.png"), (Target::Vdb, "c.vdb"), (Target::Scene, "s.toml")] {
+        h.state_mut().request(Action::WriteTo(target, dir.join(name)));
+        h.run_steps(1);
+        let (text, is_error) = h.state().message().cloned().expect("a message");
+        assert!(!is_error && text.contains(name), "{name}: {text}");
+    }
+    let (w, hgt, layers) = app::output::read_exr(&dir.join("i.exr")).unwrap();
+    assert_eq!((w, hgt), (24, 16));
+    assert!(layers.len() >= 4, "EXR layers: {}", layers.len());
+    let png = image::open(dir.join("i.png")).unwrap();
+    assert_eq!((png.width(), png.height()), (24, 16));
+    let vdb = modeler::vdb::read_vdb(&dir.join("c.vdb"), None).unwrap();
+    assert!(vdb.active_voxels > 0);
+    let back = app::scene::SceneFile::load(&dir.join("s.toml")).unwrap();
+    assert_eq!(back.medium, h.state().scene().medium);
+    // A path that cannot be written (its folder is a file) is reported, not a crash.
+    h.state_mut().request(Action::WriteTo(Target::Scene, dir.join("i.png").join("s.toml")));
+    h.run_steps(1);
+    let (text, is_error) = h.state().message().cloned().unwrap();
+    assert!(is_error && text.contains("s.toml"), "writing under a file must fail visibly: {text}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -2,6 +2,7 @@
 //! 5.1), ground truth and data generation (5.3), training and inference (5.2).
 
 pub mod datagen;
+pub mod density_features;
 pub mod depth_field;
 pub mod directions;
 pub mod features;

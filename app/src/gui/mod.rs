@@ -76,6 +76,21 @@ pub enum Action {
     Undo,
     Redo,
     Reset,
+    /// Write to this path without a dialog (what the dialogs above end in; tests).
+    WriteTo(Target, std::path::PathBuf),
+}
+
+/// What [`Action::WriteTo`] writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Target {
+    Scene,
+    /// The latest image, every buffer, as multi-layer EXR.
+    Exr,
+    /// The latest image as shown, tone-mapped.
+    Png,
+    Vdb,
+    /// A folder: cloud.vol and scene.xml.
+    Mitsuba,
 }
 
 /// Parameter-change history for undo and redo.
@@ -368,7 +383,6 @@ impl NimbusApp {
     fn apply(&mut self, action: Action) -> anyhow::Result<Option<String>> {
         use anyhow::Context as _;
         let file_dialog = || rfd::FileDialog::new();
-        let latest_film = || self.worker.mailbox.lock().unwrap().latest.as_ref().map(|p| p.film.clone());
         match action {
             Action::Undo => {
                 if let Some(s) = self.history.undo() {
@@ -412,22 +426,53 @@ impl NimbusApp {
                 else {
                     return Ok(None);
                 };
-                crate::output::write_bytes_atomically(&path, self.scene.to_toml().as_bytes())?;
-                Ok(Some(format!("saved {}", path.display())))
+                self.write_to(Target::Scene, &path)
             }
             Action::ExportExr | Action::ExportPng => {
-                let film = latest_film().context("nothing rendered yet")?;
-                let (ext, name) = if action == Action::ExportExr { ("exr", "OpenEXR") } else { ("png", "PNG") };
-                let Some(path) =
-                    file_dialog().add_filter(name, &[ext]).set_file_name(format!("nimbus.{ext}")).save_file()
+                let (target, ext, name) = if action == Action::ExportExr {
+                    (Target::Exr, "exr", "OpenEXR")
+                } else {
+                    (Target::Png, "png", "PNG")
+                };
+                // Refuse before asking for a file when there is nothing to write.
+                self.worker.mailbox.lock().unwrap().latest.as_ref().context("nothing rendered yet")?;
+                let Some(path) = file_dialog().add_filter(name, &[ext]).set_file_name(format!("nimbus.{ext}")).save_file()
                 else {
                     return Ok(None);
                 };
-                if action == Action::ExportExr {
-                    crate::output::write_exr(&path, film.width(), film.height(), &crate::output::film_layers(&film))?;
+                self.write_to(target, &path)
+            }
+            Action::ExportVdb => {
+                let Some(path) = file_dialog().add_filter("OpenVDB", &["vdb"]).set_file_name("cloud.vdb").save_file()
+                else {
+                    return Ok(None);
+                };
+                self.write_to(Target::Vdb, &path)
+            }
+            Action::ExportMitsuba => {
+                let Some(dir) = file_dialog().pick_folder() else { return Ok(None) };
+                self.write_to(Target::Mitsuba, &dir)
+            }
+            Action::WriteTo(target, path) => self.write_to(target, &path),
+        }
+    }
+
+    /// Writes the scene, the image or the cloud to `path` (a folder for Mitsuba).
+    fn write_to(&mut self, target: Target, path: &std::path::Path) -> anyhow::Result<Option<String>> {
+        use anyhow::Context as _;
+        let latest_film = || self.worker.mailbox.lock().unwrap().latest.as_ref().map(|p| p.film.clone());
+        match target {
+            Target::Scene => {
+                crate::output::write_bytes_atomically(path, self.scene.to_toml().as_bytes())?;
+                Ok(Some(format!("saved {}", path.display())))
+            }
+            Target::Exr | Target::Png => {
+                let film = latest_film().context("nothing rendered yet")?;
+                if target == Target::Exr {
+                    crate::output::write_exr(path, film.width(), film.height(), &crate::output::film_layers(&film))?;
                 } else {
                     crate::output::write_png(
-                        &path,
+                        path,
                         film.width(),
                         film.height(),
                         &film.mean(self.view_buffer),
@@ -437,20 +482,15 @@ impl NimbusApp {
                 }
                 Ok(Some(format!("wrote {} ({} spp)", path.display(), film.spp())))
             }
-            Action::ExportVdb => {
-                let Some(path) = file_dialog().add_filter("OpenVDB", &["vdb"]).set_file_name("cloud.vdb").save_file()
-                else {
-                    return Ok(None);
-                };
+            Target::Vdb => {
                 let grid = self.scene.build_grid()?;
-                crate::output::write_bytes_atomically(&path, &modeler::vdb::vdb_bytes(&grid, "density")?)?;
+                crate::output::write_bytes_atomically(path, &modeler::vdb::vdb_bytes(&grid, "density")?)?;
                 Ok(Some(format!("wrote {}", path.display())))
             }
-            Action::ExportMitsuba => {
-                let Some(dir) = file_dialog().pick_folder() else { return Ok(None) };
+            Target::Mitsuba => {
                 let scene = self.scene.build_scene(None)?;
-                crate::mitsuba::export(&scene, 256, &dir)?;
-                Ok(Some(format!("wrote cloud.vol and scene.xml to {}", dir.display())))
+                crate::mitsuba::export(&scene, 256, path)?;
+                Ok(Some(format!("wrote cloud.vol and scene.xml to {}", path.display())))
             }
         }
     }

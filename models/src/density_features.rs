@@ -1,0 +1,398 @@
+//! Density-field features of the point-to-point transport model (thesis 6.1.1).
+//!
+//! - [`DensityPyramid`]: the cloud's density filtered by Gaussians of growing width,
+//!   built once per cloud, so that a filtered density is a point lookup. Octave m
+//!   has grid spacing h_m = h_0 2^m and levels of width 2 h_m and 2 sqrt(2) h_m
+//!   (the voxel grid also has h_0 and sqrt(2) h_0, and the raw voxels). A lookup of
+//!   another width blends the two levels around it so that the blend's variance is
+//!   exactly s^2 (mipmapping in variance rather than in level). The thesis's feature
+//!   grids put their points two filter widths apart; the pyramid stores its samples
+//!   half a width apart, so that trilinear interpolation stays close to the
+//!   Gaussian everywhere, tails included.
+//! - [`LocalFrame`]: the operator F of the thesis, mapping the emitter to (0, 0, -1/2)
+//!   and the sensor to (0, 0, 1/2), with a free rotation about their axis, and
+//!   densities scaled by the emitter-sensor distance.
+//! - [`P2pFeatures`]: the set Sigma_t^{n_l, n_g, l_l, l_g} of eqs. 6.4-6.6 (the
+//!   thesis's defaults 3, 3, 4, 5 give 351 densities) and the diffusion feature
+//!   phi_D.
+//!
+//! A level's stored values are Gaussian-filtered voxel samples; a lookup between
+//! them is trilinear, and the trilinear tent adds variance h^2 / 6 on average per
+//! axis. Each level is therefore stored with Gaussian variance s^2 - h^2 / 6, so
+//! that stored filter and interpolation together have the nominal variance s^2.
+//! Going from octave m to m + 1 needs an extra Gaussian of variance 3 (4 - 1/6) h_m^2:
+//! a separable convolution evaluated at the coarse centres, which fall halfway
+//! between fine ones.
+
+use engine::DensityGrid;
+use glam::Vec3;
+
+/// Coarse voxels of padding added around each new level: the filtered density spreads
+/// beyond the cloud, and lookups there must see it.
+const PAD: i64 = 8;
+
+/// One level: values at `origin + (ijk + 0.5) * h`, zero outside.
+#[derive(Clone, Debug)]
+struct Level {
+    origin: Vec3,
+    h: Vec3,
+    dims: [usize; 3],
+    data: Vec<f32>,
+}
+
+impl Level {
+    #[inline]
+    fn at(&self, x: i64, y: i64, z: i64) -> f32 {
+        let [nx, ny, nz] = self.dims;
+        if x < 0 || y < 0 || z < 0 || x >= nx as i64 || y >= ny as i64 || z >= nz as i64 {
+            return 0.0;
+        }
+        self.data[x as usize + nx * (y as usize + ny * z as usize)]
+    }
+
+    /// Trilinear interpolation of the voxel centres, zero outside.
+    #[inline]
+    fn lookup(&self, p: Vec3) -> f32 {
+        let u = (p - self.origin) / self.h - 0.5;
+        if !u.is_finite() {
+            return 0.0;
+        }
+        let f = u.floor();
+        let t = u - f;
+        let (x, y, z) = (f.x as i64, f.y as i64, f.z as i64);
+        let mut v = 0.0;
+        for dz in 0..2 {
+            let wz = if dz == 0 { 1.0 - t.z } else { t.z };
+            for dy in 0..2 {
+                let wy = if dy == 0 { 1.0 - t.y } else { t.y };
+                for dx in 0..2 {
+                    let wx = if dx == 0 { 1.0 - t.x } else { t.x };
+                    v += wx * wy * wz * self.at(x + dx, y + dy, z + dz);
+                }
+            }
+        }
+        v
+    }
+}
+
+/// Convolves `data` along `axis` with a normalized Gaussian of variance `var` (in
+/// input voxels) and resamples: output voxel j sits at input index position
+/// `start + step * j`, and `n_out` of them are made.
+fn resample_axis(
+    data: &[f32],
+    dims: [usize; 3],
+    axis: usize,
+    var: f64,
+    start: f64,
+    step: f64,
+    n_out: usize,
+) -> (Vec<f32>, [usize; 3]) {
+    let mut out_dims = dims;
+    out_dims[axis] = n_out;
+    let n_in = dims[axis] as i64;
+    let radius = (4.0 * var.sqrt()).ceil().max(1.0) + 1.0;
+    // Weights per output position along the axis (the same for every line).
+    let taps: Vec<(i64, Vec<f32>)> = (0..n_out)
+        .map(|j| {
+            let c = start + step * j as f64;
+            let lo = (c - radius).ceil() as i64;
+            let hi = (c + radius).floor() as i64;
+            let mut w: Vec<f64> = (lo..=hi).map(|i| (-(i as f64 - c).powi(2) / (2.0 * var)).exp()).collect();
+            let s: f64 = w.iter().sum();
+            w.iter_mut().for_each(|x| *x /= s);
+            (lo, w.into_iter().map(|x| x as f32).collect())
+        })
+        .collect();
+    let stride = |d: [usize; 3], a: usize| match a {
+        0 => 1,
+        1 => d[0],
+        _ => d[0] * d[1],
+    };
+    let (s_in, s_out) = (stride(dims, axis), stride(out_dims, axis));
+    let total: usize = out_dims.iter().product();
+    let mut out = vec![0.0f32; total];
+    // Iterate over all lines along `axis`.
+    let others: Vec<usize> = (0..3).filter(|&a| a != axis).collect();
+    let (a0, a1) = (others[0], others[1]);
+    for i1 in 0..dims[a1] {
+        for i0 in 0..dims[a0] {
+            let mut base_in = 0;
+            let mut base_out = 0;
+            for (a, i) in [(a0, i0), (a1, i1)] {
+                base_in += i * stride(dims, a);
+                base_out += i * stride(out_dims, a);
+            }
+            for (j, (lo, w)) in taps.iter().enumerate() {
+                let mut v = 0.0f32;
+                for (k, wk) in w.iter().enumerate() {
+                    let i = lo + k as i64;
+                    if i >= 0 && i < n_in {
+                        v += wk * data[base_in + i as usize * s_in];
+                    }
+                }
+                out[base_out + j * s_out] = v;
+            }
+        }
+    }
+    (out, out_dims)
+}
+
+/// The Gaussian pyramid of a density grid (values in density units, before rho).
+#[derive(Clone, Debug)]
+pub struct DensityPyramid {
+    levels: Vec<Level>,
+    /// Nominal filter width of each level (increasing).
+    stds: Vec<f32>,
+}
+
+impl DensityPyramid {
+    /// Builds levels until one's filter is wider than `max_std` (world units).
+    pub fn new(grid: &DensityGrid, max_std: f32) -> Self {
+        let d = grid.dims();
+        let h0 = grid.voxel_size();
+        let hmax = h0.max_element();
+        let tent = 1.0 / 6.0;
+        let raw = Level {
+            origin: grid.origin(),
+            h: h0,
+            dims: [d.x as usize, d.y as usize, d.z as usize],
+            data: grid.data().to_vec(),
+        };
+        // Filters `level` (stored variance `from` in its voxels^2) to stored variance
+        // `to` on the same grid.
+        let blur = |level: &Level, from: f64, to: f64| {
+            let (mut data, mut dims) = (level.data.clone(), level.dims);
+            for axis in 0..3 {
+                (data, dims) = resample_axis(&data, dims, axis, to - from, 0.0, 1.0, dims[axis]);
+            }
+            Level { data, dims, ..level.clone() }
+        };
+        // Octave 0: the voxel grid, padded, stored with the variance of its base
+        // width 2h.
+        let base = 4.0 - tent;
+        let (mut data, mut dims) = (raw.data.clone(), raw.dims);
+        for axis in 0..3 {
+            let n_out = dims[axis] + 2 * PAD as usize;
+            (data, dims) = resample_axis(&data, dims, axis, base, -(PAD as f64), 1.0, n_out);
+        }
+        let mut octaves = vec![Level { origin: grid.origin() - h0 * PAD as f32, h: h0, dims, data }];
+        let mut s = 2.0 * hmax;
+        while s < max_std.max(hmax) && octaves.len() < 40 {
+            let prev = octaves.last().unwrap();
+            let (mut data, mut dims) = (prev.data.clone(), prev.dims);
+            for axis in 0..3 {
+                // Coarse centre J sits at fine index position 2 (J - PAD) + 0.5; the
+                // stored variance grows from `base` h^2 to `base` (2h)^2.
+                let n_out = prev.dims[axis].div_ceil(2) + 2 * PAD as usize;
+                (data, dims) = resample_axis(&data, dims, axis, 3.0 * base, 0.5 - 2.0 * PAD as f64, 2.0, n_out);
+            }
+            let h = prev.h * 2.0;
+            octaves.push(Level { origin: prev.origin - h * PAD as f32, h, dims, data });
+            s *= 2.0;
+        }
+        // The raw voxels (the tent alone: width h / sqrt(6)); on the voxel grid the
+        // widths h and sqrt(2) h; then each octave's base width 2 h_m and, toward
+        // the next octave, 2 sqrt(2) h_m on the same grid.
+        let sqrt2 = std::f32::consts::SQRT_2;
+        let mut levels = vec![raw.clone(), blur(&raw, 0.0, 1.0 - tent), blur(&raw, 0.0, 2.0 - tent)];
+        let mut stds = vec![hmax * tent.sqrt() as f32, hmax, sqrt2 * hmax];
+        let n_oct = octaves.len();
+        for (m, level) in octaves.into_iter().enumerate() {
+            let h = level.h.max_element();
+            let half = (m + 1 < n_oct).then(|| blur(&level, base, 8.0 - tent));
+            levels.push(level);
+            stds.push(2.0 * h);
+            if let Some(half) = half {
+                levels.push(half);
+                stds.push(2.0 * sqrt2 * h);
+            }
+        }
+        DensityPyramid { levels, stds }
+    }
+
+    pub fn levels(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// Bytes held by the levels.
+    pub fn bytes(&self) -> usize {
+        self.levels.iter().map(|l| l.data.len() * 4).sum()
+    }
+
+    /// The density at `p` filtered by a Gaussian of standard deviation `std` (world
+    /// units). Widths below the raw voxels' read them; widths beyond the coarsest
+    /// level read that level.
+    #[inline]
+    pub fn lookup(&self, p: Vec3, std: f32) -> f32 {
+        let i = self.stds.partition_point(|s| *s <= std);
+        if i == 0 {
+            return self.levels[0].lookup(p);
+        }
+        if i >= self.levels.len() {
+            return self.levels[self.levels.len() - 1].lookup(p);
+        }
+        let (a, b) = (self.stds[i - 1], self.stds[i]);
+        // Variance-matched blend: (1 - f) a^2 + f b^2 = std^2.
+        let f = ((std * std - a * a) / (b * b - a * a)).clamp(0.0, 1.0);
+        (1.0 - f) * self.levels[i - 1].lookup(p) + f * self.levels[i].lookup(p)
+    }
+}
+
+/// The thesis's local frame F: translation, rotation and uniform scaling taking the
+/// emitter to (0, 0, -1/2) and the sensor to (0, 0, 1/2).
+#[derive(Clone, Copy, Debug)]
+pub struct LocalFrame {
+    mid: Vec3,
+    ex: Vec3,
+    ey: Vec3,
+    ez: Vec3,
+    /// Emitter-sensor distance: one local unit in world units.
+    pub scale: f32,
+}
+
+impl LocalFrame {
+    /// `angle` (radians) fixes the rotation about the emitter-sensor axis. None when
+    /// the two points coincide or are not finite.
+    pub fn new(emitter: Vec3, sensor: Vec3, angle: f32) -> Option<Self> {
+        let axis = sensor - emitter;
+        let scale = axis.length();
+        if !(scale > 1e-9 && scale.is_finite()) {
+            return None;
+        }
+        let ez = axis / scale;
+        let (t, b) = engine::sampling::coordinate_system(ez);
+        let (s, c) = angle.sin_cos();
+        let (ex, ey) = (t * c + b * s, b * c - t * s);
+        Some(LocalFrame { mid: 0.5 * (emitter + sensor), ex, ey, ez, scale })
+    }
+
+    pub fn to_local(&self, p: Vec3) -> Vec3 {
+        let d = (p - self.mid) / self.scale;
+        Vec3::new(d.dot(self.ex), d.dot(self.ey), d.dot(self.ez))
+    }
+
+    pub fn to_world(&self, q: Vec3) -> Vec3 {
+        self.mid + self.scale * (self.ex * q.x + self.ey * q.y + self.ez * q.z)
+    }
+}
+
+/// The feature set Sigma_t^{n_l, n_g, l_l, l_g} (eqs. 6.4-6.6) and phi_D.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct P2pFeatures {
+    /// Grid points per axis of the local (emitter and sensor) levels.
+    pub n_local: u32,
+    /// Grid points per axis of the global levels.
+    pub n_global: u32,
+    pub local_levels: u32,
+    pub global_levels: u32,
+}
+
+impl Default for P2pFeatures {
+    /// The thesis's choice: 3, 3, 4, 5 (351 densities).
+    fn default() -> Self {
+        P2pFeatures { n_local: 3, n_global: 3, local_levels: 4, global_levels: 5 }
+    }
+}
+
+/// One block of the network's input: the densities of one level (the emitter's and
+/// the sensor's together for a local level).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LevelSlice {
+    pub start: usize,
+    pub len: usize,
+}
+
+impl P2pFeatures {
+    /// Number of densities (351 for the defaults).
+    pub fn densities(&self) -> usize {
+        let (nl, ng) = (self.n_local.pow(3) as usize, self.n_global.pow(3) as usize);
+        2 * nl * self.local_levels as usize + ng * self.global_levels as usize
+    }
+
+    /// Densities plus phi_D.
+    pub fn len(&self) -> usize {
+        self.densities() + 1
+    }
+
+    /// The widest filter any feature needs, in local units (the largest global
+    /// level's sigma = 2^l / (n - 1)).
+    pub fn max_local_std(&self) -> f32 {
+        2f32.powi(self.global_levels as i32 - 1) / (self.n_global.max(2) - 1) as f32
+    }
+
+    /// The order of the features, the order the deep network takes them (thesis
+    /// 6.2.1): local levels from the smallest neighbourhood (l = l_l - 1) to the
+    /// largest, each with the emitter's then the sensor's grid; then the global levels
+    /// from the smallest (l = 0) to the largest; then phi_D.
+    pub fn slices(&self) -> Vec<LevelSlice> {
+        let (nl, ng) = (self.n_local.pow(3) as usize, self.n_global.pow(3) as usize);
+        let mut out = vec![];
+        let mut start = 0;
+        for _ in 0..self.local_levels {
+            out.push(LevelSlice { start, len: 2 * nl });
+            start += 2 * nl;
+        }
+        for _ in 0..self.global_levels {
+            out.push(LevelSlice { start, len: ng });
+            start += ng;
+        }
+        out
+    }
+
+    /// Writes the features of the emitter-sensor pair described by `frame` into
+    /// `out` (length `len()`): the local-space densities rho d, scaled by the
+    /// emitter-sensor distance, then phi_D for `albedo`.
+    pub fn write(&self, pyramid: &DensityPyramid, rho: f32, albedo: f32, frame: &LocalFrame, out: &mut [f32]) {
+        assert_eq!(out.len(), self.len(), "feature buffer length");
+        let scale = frame.scale;
+        let mut i = 0;
+        let mut level = |origin: Vec3, n: u32, l: i32, out: &mut [f32]| {
+            let extent = 2f32.powi(l);
+            let std_local = extent / (n.max(2) - 1) as f32;
+            for a in 0..n {
+                for b in 0..n {
+                    for c in 0..n {
+                        let g = |k: u32| if n == 1 { 0.0 } else { 2.0 * k as f32 / (n - 1) as f32 - 1.0 };
+                        let q = origin + extent * Vec3::new(g(a), g(b), g(c));
+                        out[i] = scale * rho * pyramid.lookup(frame.to_world(q), std_local * scale);
+                        i += 1;
+                    }
+                }
+            }
+        };
+        let (xe, xs) = (Vec3::new(0.0, 0.0, -0.5), Vec3::new(0.0, 0.0, 0.5));
+        for l in (0..self.local_levels as i32).rev() {
+            level(xe, self.n_local, -l - 1, out);
+            level(xs, self.n_local, -l - 1, out);
+        }
+        for l in 0..self.global_levels as i32 {
+            level(Vec3::ZERO, self.n_global, l, out);
+        }
+        // phi_D from the density around the segment: the global level-0 filter
+        // (sigma = 1/2 local unit) at the midpoint.
+        let sigma_t = scale * rho * pyramid.lookup(frame.to_world(Vec3::ZERO), 0.5 * scale);
+        out[i] = diffusion_fluence(sigma_t, albedo, 1.0);
+    }
+}
+
+/// Fluence at distance `r` from a unit-power isotropic point source in an infinite
+/// homogeneous isotropic medium, by the diffusion approximation with Grosjean's
+/// diffusion coefficient D = (2 sigma_a + sigma_s) / (3 sigma_t^2), the coefficient
+/// of the improved diffusion models the thesis cites (d'Eon and Irving 2011):
+/// phi(r) = exp(-sigma_tr r) / (4 pi D r), sigma_tr = sqrt(sigma_a / D).
+pub fn diffusion_fluence(sigma_t: f32, albedo: f32, r: f32) -> f32 {
+    if !(sigma_t > 0.0 && r > 0.0) {
+        return 0.0;
+    }
+    let (sigma_t, albedo, r) = (sigma_t as f64, albedo.clamp(0.0, 1.0) as f64, r as f64);
+    let (sigma_s, sigma_a) = (albedo * sigma_t, (1.0 - albedo) * sigma_t);
+    let d = (2.0 * sigma_a + sigma_s) / (3.0 * sigma_t * sigma_t);
+    let sigma_tr = (sigma_a / d).sqrt();
+    ((-sigma_tr * r).exp() / (4.0 * std::f64::consts::PI * d * r)) as f32
+}
+
+/// Builds the pyramid a feature set needs for clouds whose emitter-sensor distances
+/// reach `max_distance` (world units).
+pub fn pyramid_for(grid: &DensityGrid, spec: &P2pFeatures, max_distance: f32) -> DensityPyramid {
+    DensityPyramid::new(grid, spec.max_local_std() * max_distance)
+}
