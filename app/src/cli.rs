@@ -155,6 +155,8 @@ pub enum BenchCommand {
     Model(BenchModelArgs),
     /// Seconds per ground-truth data point, the thesis's table 5.1, one thread.
     Datagen(crate::datagen_cmd::BenchDatagenArgs),
+    /// Seconds per point-to-point data point, the thesis's table 6.1, one thread.
+    DatagenP2p(crate::datagen_cmd::BenchDatagenP2pArgs),
     /// Nanoseconds per prediction of the global model, network alone and with features.
     Predict(crate::train_cmd::BenchPredictArgs),
     /// The window's responsiveness without a window: milliseconds from a parameter
@@ -246,6 +248,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench { which: BenchCommand::Model(args) }) => crate::model_cmd::bench_model(args),
         Some(Command::Bench { which: BenchCommand::Render(args) }) => bench_render(args),
         Some(Command::Bench { which: BenchCommand::Datagen(args) }) => crate::datagen_cmd::bench_datagen(args),
+        Some(Command::Bench { which: BenchCommand::DatagenP2p(args) }) => crate::datagen_cmd::bench_datagen_p2p(args),
         Some(Command::Datagen { which }) => crate::datagen_cmd::datagen(which),
         Some(Command::Bench { which: BenchCommand::Predict(args) }) => crate::train_cmd::bench_predict(args),
         #[cfg(feature = "gui")]

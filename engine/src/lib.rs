@@ -12,6 +12,7 @@ pub mod grid;
 pub mod integrator;
 pub mod light;
 pub mod medium;
+pub mod p2p;
 pub mod phase;
 pub mod predictor;
 pub mod render;
