@@ -155,6 +155,8 @@ pub enum BenchCommand {
     Model(BenchModelArgs),
     /// Seconds per ground-truth data point, the thesis's table 5.1, one thread.
     Datagen(crate::datagen_cmd::BenchDatagenArgs),
+    /// Microseconds per point-to-point prediction (features, deep residual network).
+    PredictP2p(crate::train_cmd::BenchPredictP2pArgs),
     /// Seconds per point-to-point data point, the thesis's table 6.1, one thread.
     DatagenP2p(crate::datagen_cmd::BenchDatagenP2pArgs),
     /// Nanoseconds per prediction of the global model, network alone and with features.
@@ -248,6 +250,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Some(Command::Bench { which: BenchCommand::Model(args) }) => crate::model_cmd::bench_model(args),
         Some(Command::Bench { which: BenchCommand::Render(args) }) => bench_render(args),
         Some(Command::Bench { which: BenchCommand::Datagen(args) }) => crate::datagen_cmd::bench_datagen(args),
+        Some(Command::Bench { which: BenchCommand::PredictP2p(args) }) => crate::train_cmd::bench_predict_p2p(args),
         Some(Command::Bench { which: BenchCommand::DatagenP2p(args) }) => crate::datagen_cmd::bench_datagen_p2p(args),
         Some(Command::Datagen { which }) => crate::datagen_cmd::datagen(which),
         Some(Command::Bench { which: BenchCommand::Predict(args) }) => crate::train_cmd::bench_predict(args),

@@ -319,3 +319,91 @@ fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<(
     );
     Ok(())
 }
+
+#[derive(Args, Debug)]
+pub struct BenchPredictP2pArgs {
+    /// Predictions per measurement.
+    #[arg(long, default_value_t = 2_000)]
+    pub n: usize,
+    /// Grid resolution of the benchmark cloud (scene-a).
+    #[arg(long, default_value_t = 128)]
+    pub resolution: u32,
+}
+
+/// Microseconds per point-to-point prediction on one thread: the density pyramid's
+/// build, the 351 density features and phi_D, and the thesis's deep residual network
+/// (Glorot-initialized: the cost does not depend on the weights) single and batched,
+/// with the MLP baseline beside it.
+pub fn bench_predict_p2p(args: BenchPredictP2pArgs) -> Result<()> {
+    use models::density_features::{LocalFrame, P2pFeatures, pyramid_for};
+    use models::p2p_net::{P2pArch, P2pNetwork};
+    if args.n == 0 {
+        bail!("--n must be at least 1");
+    }
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    pool.install(|| -> Result<()> {
+        let params = modeler::preset("scene-a").context("scene-a preset")?;
+        let grid = modeler::build_grid(&params, args.resolution)?;
+        let spec = P2pFeatures::default();
+        let t = std::time::Instant::now();
+        let pyramid = pyramid_for(&grid, &spec, 1.0);
+        let build = t.elapsed().as_secs_f64();
+        println!(
+            "# nimbus bench predict-p2p: one thread, scene-a {}^3",
+            args.resolution
+        );
+        println!(
+            "density pyramid: {} levels, {:.1} MiB, built in {:.2} s",
+            pyramid.levels(),
+            pyramid.bytes() as f64 / (1 << 20) as f64,
+            build
+        );
+        let medium = engine::Medium::new(Arc::new(grid), 25.0, 0.99, engine::PhaseFunction::Isotropic)?;
+        let mut rng = Rng::new(1, 0, 0);
+        let mut frames = vec![];
+        while frames.len() < args.n {
+            let a = engine::p2p::sample_query_end(&medium, 2, &mut rng);
+            let b = engine::p2p::sample_query_end(&medium, 2, &mut rng);
+            if let (Some((e, _)), Some((s, _))) = (a, b) {
+                if let Some(f) = LocalFrame::new(e, s, 6.283 * rng.uniform()) {
+                    frames.push(f);
+                }
+            }
+        }
+        let mut x = vec![0.0f32; args.n * spec.len()];
+        let t = std::time::Instant::now();
+        for (f, row) in frames.iter().zip(x.chunks_mut(spec.len())) {
+            spec.write(&pyramid, 25.0, 0.99, f, row);
+        }
+        let features_us = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
+        println!("features (351 densities + phi_D): {features_us:.2} us per query");
+        println!("| network | parameters | single (us) | batched (us per prediction) | features + batched (us) |");
+        println!("|---|---|---|---|---|");
+        for (name, arch) in [
+            ("deep residual, 9 blocks of 3 x 200 (thesis)", P2pArch::default()),
+            ("MLP 2 x 200 (baseline)", P2pArch::Mlp { hidden: vec![200, 200] }),
+        ] {
+            let net = P2pNetwork::new(&spec, arch, 1, &candle_core::Device::Cpu)?;
+            let eval = net.evaluator()?;
+            let mut s = eval.scratch();
+            let t = std::time::Instant::now();
+            let mut sink = 0.0;
+            for row in x.chunks(spec.len()) {
+                sink += eval.forward(row, &mut s);
+            }
+            let single = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
+            let mut out = vec![0.0; args.n];
+            let mut bs = Default::default();
+            let t = std::time::Instant::now();
+            eval.forward_batch(&x, &mut out, &mut bs);
+            let batched = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
+            std::hint::black_box(sink + out[0]);
+            println!(
+                "| {name} | {} | {single:.1} | {batched:.1} | {:.1} |",
+                net.parameters(),
+                features_us + batched
+            );
+        }
+        Ok(())
+    })
+}

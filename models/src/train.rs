@@ -340,14 +340,14 @@ impl Network {
 }
 
 /// Optimizer state: one or two moment tensors per parameter.
-struct OptState {
+pub(crate) struct OptState {
     step: u64,
     m: Vec<Tensor>,
     v: Vec<Tensor>,
 }
 
 impl OptState {
-    fn new(vars: &[&Var]) -> candle_core::Result<Self> {
+    pub(crate) fn new(vars: &[&Var]) -> candle_core::Result<Self> {
         let zeros = |v: &&Var| v.as_tensor().zeros_like();
         Ok(OptState {
             step: 0,
@@ -356,7 +356,7 @@ impl OptState {
         })
     }
 
-    fn apply(
+    pub(crate) fn apply(
         &mut self,
         opt: Optimizer,
         lr: f64,
