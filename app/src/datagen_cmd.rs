@@ -21,6 +21,8 @@ pub enum DatagenCommand {
     Global(GlobalArgs),
     /// Join the shard directories of one data set into a complete one.
     Merge(MergeArgs),
+    /// Ground truth for the point-to-point model (thesis 6.3), resumable and shardable.
+    P2p(P2pArgs),
 }
 
 #[derive(Args, Debug)]
@@ -170,11 +172,142 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
             Ok(())
         }
         DatagenCommand::Merge(args) => {
-            let m = datagen::merge(&args.shards, &args.out)?;
-            println!("merged {} shards: {} points into {}", args.shards.len(), m.counts.points, args.out.display());
+            let first = args.shards.first().context("name the shard directories")?;
+            let text = std::fs::read_to_string(first.join("manifest.json")).unwrap_or_default();
+            let points = if text.contains(models::p2p_datagen::FORMAT) {
+                models::p2p_datagen::merge(&args.shards, &args.out)?.counts.points
+            } else {
+                datagen::merge(&args.shards, &args.out)?.counts.points
+            };
+            println!("merged {} shards: {points} points into {}", args.shards.len(), args.out.display());
             Ok(())
         }
+        DatagenCommand::P2p(args) => datagen_p2p(args),
     }
+}
+
+/// The cloud of `nimbus datagen p2p --cloud`: a built-in cloud, a modeler preset or a
+/// VDB file.
+pub fn cloud_grid(name: &str, resolution: u32) -> Result<engine::DensityGrid> {
+    if let Some(b) = crate::cloud::Builtin::from_name(name) {
+        return Ok(b.grid(resolution));
+    }
+    if let Some(params) = modeler::preset(name) {
+        return Ok(modeler::build_grid(&params, resolution)?);
+    }
+    if name.ends_with(".vdb") {
+        return Ok(modeler::vdb::read_vdb(std::path::Path::new(name), None)?.grid);
+    }
+    bail!(
+        "--cloud {name:?} is neither a built-in cloud ({}), a modeler preset ({}) nor a .vdb file",
+        crate::cloud::Builtin::NAMES.join(", "),
+        modeler::PRESET_NAMES.join(", ")
+    )
+}
+
+fn datagen_p2p(args: P2pArgs) -> Result<()> {
+    let spec = models::p2p_datagen::P2pSpec {
+        points: args.points,
+        cloud: args.cloud.clone(),
+        resolution: args.resolution,
+        rho: args.rho,
+        albedo: args.albedo,
+        g: args.g,
+        k: args.k,
+        rotations: args.rotations,
+        features: Default::default(),
+        max_rel_error: args.max_rel_error,
+        confidence: args.confidence,
+        min_samples: args.min_samples,
+        max_samples: args.max_samples,
+        seed: args.seed,
+        chunk_size: args.chunk_size,
+    };
+    spec.validate()?;
+    let grid = Arc::new(cloud_grid(&args.cloud, args.resolution)?);
+    let shard = Shard::parse(&args.shard)?;
+    let threads = init_threads(args.threads)?;
+    let owned: u64 = (0..spec.n_chunks()).filter(|&c| shard.owns(c)).map(|c| spec.chunk_len(c)).sum();
+    eprintln!(
+        "point-to-point data set: {} points x {} rotations ({} points in shard {}/{}), {} threads, into {}",
+        spec.points,
+        spec.rotations,
+        owned,
+        shard.index,
+        shard.count,
+        threads,
+        args.out.display()
+    );
+    let bar = progress_bar(owned, "points", args.quiet);
+    let cancel = cancel_on_ctrl_c();
+    let t = std::time::Instant::now();
+    let m = models::p2p_datagen::generate(
+        &spec,
+        grid,
+        shard,
+        &args.out,
+        &code_version(),
+        &|n| bar.set_position(n),
+        &cancel,
+    )?;
+    bar.finish_and_clear();
+    println!(
+        "{} {} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
+        if m.complete { "complete:" } else { "shard done:" },
+        owned,
+        t.elapsed().as_secs_f64(),
+        m.counts.seconds,
+        m.counts.path_samples,
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// `nimbus datagen p2p`: ground truth for the point-to-point model (thesis 6.3).
+#[derive(Args, Debug)]
+pub struct P2pArgs {
+    /// A built-in cloud, a modeler preset (scene-a .. set-12) or a .vdb file.
+    #[arg(long, default_value = "scene-a")]
+    pub cloud: String,
+    /// Voxels per axis of generated clouds.
+    #[arg(long, default_value_t = 128)]
+    pub resolution: u32,
+    #[arg(long, default_value_t = 1000)]
+    pub points: u64,
+    #[arg(long, default_value_t = 25.0)]
+    pub rho: f32,
+    #[arg(long, default_value_t = 0.99)]
+    pub albedo: f32,
+    /// Henyey-Greenstein g (the thesis's model: 0).
+    #[arg(long, default_value_t = 0.0)]
+    pub g: f32,
+    /// Segments of the walks that place emitter and sensor.
+    #[arg(long, default_value_t = 2)]
+    pub k: u32,
+    /// Feature rows per point (random rotations about the emitter-sensor axis).
+    #[arg(long, default_value_t = 50)]
+    pub rotations: u32,
+    #[arg(long, default_value_t = 0.1)]
+    pub max_rel_error: f64,
+    #[arg(long, default_value_t = 0.95)]
+    pub confidence: f64,
+    #[arg(long, default_value_t = 1000)]
+    pub min_samples: u64,
+    #[arg(long, default_value_t = 20_000_000)]
+    pub max_samples: u64,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    #[arg(long, default_value_t = 20)]
+    pub chunk_size: u64,
+    /// This run's part, i/N (chunks c with c mod N == i).
+    #[arg(long, default_value = "0/1")]
+    pub shard: String,
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub quiet: bool,
 }
 
 #[derive(Args, Debug)]

@@ -134,7 +134,7 @@ pub enum DatagenError {
     Cancelled { done: usize, total: usize },
 }
 
-fn setting(flag: &'static str, why: impl Into<String>) -> DatagenError {
+pub(crate) fn setting(flag: &'static str, why: impl Into<String>) -> DatagenError {
     DatagenError::Setting { flag, why: why.into() }
 }
 

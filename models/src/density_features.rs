@@ -277,7 +277,7 @@ impl LocalFrame {
 }
 
 /// The feature set Sigma_t^{n_l, n_g, l_l, l_g} (eqs. 6.4-6.6) and phi_D.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct P2pFeatures {
     /// Grid points per axis of the local (emitter and sensor) levels.
     pub n_local: u32,

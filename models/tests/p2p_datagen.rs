@@ -1,0 +1,103 @@
+//! The point-to-point data generator: the same bytes for 1 and 2 threads, a run
+//! stopped after its first chunk resumes to the same bytes, shards merge to the
+//! unsharded data set, settings are checked on resume, and every row is consistent.
+
+use engine::{Bounds3, DensityGrid};
+use glam::{UVec3, Vec3};
+use models::datagen::Shard;
+use models::p2p_datagen::{P2pSpec, generate, merge};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+fn cloud() -> Arc<DensityGrid> {
+    let b = Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5));
+    Arc::new(
+        DensityGrid::from_fn(UVec3::splat(24), b, |p| (1.0 - (p.length() / 0.45).powi(2)).max(0.0) * (1.0 + 0.5 * (7.0 * p.x).sin()))
+            .unwrap(),
+    )
+}
+
+fn spec() -> P2pSpec {
+    P2pSpec {
+        points: 7,
+        cloud: "test blob".into(),
+        resolution: 24,
+        rho: 6.0,
+        albedo: 0.9,
+        g: 0.0,
+        k: 2,
+        rotations: 3,
+        max_rel_error: 0.3,
+        min_samples: 200,
+        max_samples: 200_000,
+        seed: 5,
+        chunk_size: 2,
+        ..Default::default()
+    }
+}
+
+fn dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("nimbus-p2pdata-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn bytes(d: &Path) -> (Vec<u8>, Vec<u8>) {
+    (std::fs::read(d.join("features.npy")).unwrap(), std::fs::read(d.join("targets.npy")).unwrap())
+}
+
+fn run(s: &P2pSpec, shard: Shard, d: &Path, threads: usize, cancel: &AtomicBool) -> Result<(), String> {
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+    pool.install(|| generate(s, cloud(), shard, d, "test", &|_| {}, cancel)).map(|_| ()).map_err(|e| e.to_string())
+}
+
+#[test]
+fn deterministic_resumable_and_shardable() {
+    let s = spec();
+    let never = AtomicBool::new(false);
+    let (a, b) = (dir("a"), dir("b"));
+    run(&s, Shard::ALL, &a, 1, &never).unwrap();
+    run(&s, Shard::ALL, &b, 2, &never).unwrap();
+    assert_eq!(bytes(&a), bytes(&b), "1 and 2 threads differ");
+
+    // Rows: 352 features and 5 targets; T > 0, T_local = D^2 T, the rotations of one
+    // point share their targets but not all their features.
+    let (shape, t) = models::npy::read_f32(&a.join("targets.npy")).unwrap();
+    assert_eq!(shape, [21, 5]);
+    let (fshape, f) = models::npy::read_f32(&a.join("features.npy")).unwrap();
+    assert_eq!(fshape, [21, 352]);
+    for r in t.chunks(5) {
+        assert!(r[0] > 0.0 && r[1] >= 0.0 && r[2] >= 200.0 && r[3] > 0.0, "{r:?}");
+        assert!((r[4] - r[3] * r[3] * r[0]).abs() <= 1e-4 * r[4].abs(), "{r:?}");
+    }
+    assert_eq!(t[0..5], t[5..10]);
+    assert_ne!(f[0..351], f[352..703], "rotations give different feature rows");
+
+    // Stopped after the first chunk, then resumed: the same bytes.
+    let c = dir("c");
+    let cancel = AtomicBool::new(false);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let stopped = pool.install(|| {
+        generate(&s, cloud(), Shard::ALL, &c, "test", &|n| if n >= 2 { cancel.store(true, Ordering::Relaxed) }, &cancel)
+    });
+    assert!(stopped.is_err(), "the run should have been cancelled");
+    assert!(models::datagen::chunk_path(&c, 0).exists());
+    run(&s, Shard::ALL, &c, 2, &never).unwrap();
+    assert_eq!(bytes(&a), bytes(&c), "resumed run differs");
+
+    // Two shards merged.
+    let (s0, s1, m) = (dir("s0"), dir("s1"), dir("m"));
+    run(&s, Shard { index: 0, count: 2 }, &s0, 1, &never).unwrap();
+    run(&s, Shard { index: 1, count: 2 }, &s1, 1, &never).unwrap();
+    std::fs::create_dir_all(&m).unwrap();
+    merge(&[s0.clone(), s1.clone()], &m).unwrap();
+    assert_eq!(bytes(&a), bytes(&m), "merged shards differ");
+
+    // Other settings in the same directory are refused, naming the flag.
+    let e = run(&P2pSpec { rho: 7.0, ..s.clone() }, Shard::ALL, &a, 1, &never).unwrap_err();
+    assert!(e.contains("--rho"), "{e}");
+    for d in [a, b, c, s0, s1, m] {
+        std::fs::remove_dir_all(d).ok();
+    }
+}
