@@ -16,6 +16,79 @@ use std::sync::atomic::{AtomicBool, Ordering};
 pub enum TrainCommand {
     /// Train the global model (thesis chapter 5) on data sets from `nimbus datagen global`.
     Global(TrainGlobalArgs),
+    /// Train the point-to-point model (thesis chapter 6) on data sets from
+    /// `nimbus datagen p2p`.
+    P2p(TrainP2pArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct TrainP2pArgs {
+    /// Data-set directories (one albedo, g and feature set).
+    #[arg(required = true)]
+    pub data: Vec<PathBuf>,
+    /// Output path without extension: OUT.safetensors, .json, .loss.csv, .loss.png.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// residual (thesis figure 6.4) or mlp.
+    #[arg(long, default_value = "residual")]
+    pub arch: String,
+    /// Units per layer of the residual blocks.
+    #[arg(long, default_value_t = 200)]
+    pub width: usize,
+    /// Layers per residual block.
+    #[arg(long, default_value_t = 3)]
+    pub layers: usize,
+    /// Hidden widths of the MLP, e.g. 200,200.
+    #[arg(long, value_delimiter = ',', default_value = "200,200")]
+    pub hidden: Vec<usize>,
+    #[arg(long, default_value_t = 20)]
+    pub epochs: usize,
+    #[arg(long, default_value_t = 250)]
+    pub batch: usize,
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+fn train_p2p(args: TrainP2pArgs) -> Result<()> {
+    use models::p2p_net::P2pArch;
+    let arch = match args.arch.as_str() {
+        "residual" if args.width > 0 && args.layers > 0 => P2pArch::Residual { width: args.width, layers: args.layers },
+        "mlp" if args.hidden.iter().all(|h| *h > 0) => P2pArch::Mlp { hidden: args.hidden.clone() },
+        other => bail!("--arch {other:?} with these sizes is not valid: residual (--width, --layers > 0) or mlp (--hidden > 0)"),
+    };
+    if args.epochs == 0 || args.batch == 0 || !(args.lr > 0.0) {
+        bail!("--epochs, --batch and --lr must be positive");
+    }
+    init_threads(args.threads)?;
+    let cfg = models::p2p_train::P2pTrainConfig {
+        arch,
+        epochs: args.epochs,
+        batch: args.batch,
+        lr: args.lr,
+        seed: args.seed,
+        ..Default::default()
+    };
+    let t = std::time::Instant::now();
+    let bar = progress_bar(args.epochs as u64, "epochs", false);
+    let side = models::p2p_train::train(&args.data, &cfg, &args.out, &|e, test| {
+        bar.set_position(e as u64);
+        bar.set_message(format!("test mse {test:.4}"));
+    })
+    .map_err(anyhow::Error::msg)?;
+    bar.finish_and_clear();
+    println!(
+        "trained in {:.1} s: test mse {:.4} (standardized ln T), relative error of T median {:.1} %, p90 {:.1} %; wrote {}.safetensors",
+        t.elapsed().as_secs_f64(),
+        side.test_mse,
+        100.0 * side.test_rel_error_median,
+        100.0 * side.test_rel_error_p90,
+        args.out.display()
+    );
+    Ok(())
 }
 
 #[derive(Args, Debug)]
@@ -120,7 +193,10 @@ impl TrainObserver for BarObserver {
 }
 
 pub fn train(cmd: TrainCommand) -> Result<()> {
-    let TrainCommand::Global(args) = cmd;
+    let args = match cmd {
+        TrainCommand::Global(args) => args,
+        TrainCommand::P2p(args) => return train_p2p(args),
+    };
     let cfg = args.config()?;
     let threads = init_threads(args.threads)?;
     let t = std::time::Instant::now();

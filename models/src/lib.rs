@@ -5,6 +5,7 @@ pub mod datagen;
 pub mod density_features;
 pub mod p2p_datagen;
 pub mod p2p_net;
+pub mod p2p_train;
 pub mod depth_field;
 pub mod directions;
 pub mod features;

@@ -104,6 +104,48 @@ impl P2pNetwork {
         v
     }
 
+    /// Named tensors: blocks.B.L.weight / .bias and out.weight / out.bias.
+    pub fn named(&self) -> std::collections::HashMap<String, Tensor> {
+        let mut m = std::collections::HashMap::new();
+        for (b, block) in self.blocks.iter().enumerate() {
+            for (l, (w, bias)) in block.iter().enumerate() {
+                m.insert(format!("blocks.{b}.{l}.weight"), w.as_tensor().clone());
+                m.insert(format!("blocks.{b}.{l}.bias"), bias.as_tensor().clone());
+            }
+        }
+        m.insert("out.weight".into(), self.out.0.as_tensor().clone());
+        m.insert("out.bias".into(), self.out.1.as_tensor().clone());
+        m
+    }
+
+    /// Sets every parameter from `named` (as [`P2pNetwork::named`] writes them),
+    /// checking names and shapes.
+    pub fn load_named(&self, named: &std::collections::HashMap<String, Tensor>) -> Result<(), String> {
+        let mine = self.named();
+        if named.len() != mine.len() {
+            return Err(format!("{} tensors, the architecture has {}", named.len(), mine.len()));
+        }
+        let set = |name: &str, var: &Var| -> Result<(), String> {
+            let t = named.get(name).ok_or_else(|| format!("tensor {name} is missing"))?;
+            if t.dims() != var.as_tensor().dims() {
+                return Err(format!("{name} has shape {:?}, the architecture {:?}", t.dims(), var.as_tensor().dims()));
+            }
+            let t = t.to_dtype(DType::F32).map_err(|e| e.to_string())?;
+            if t.flatten_all().and_then(|f| f.to_vec1::<f32>()).map_err(|e| e.to_string())?.iter().any(|v| !v.is_finite()) {
+                return Err(format!("{name} holds a NaN or infinity"));
+            }
+            var.set(&t).map_err(|e| e.to_string())
+        };
+        for (b, block) in self.blocks.iter().enumerate() {
+            for (l, (w, bias)) in block.iter().enumerate() {
+                set(&format!("blocks.{b}.{l}.weight"), w)?;
+                set(&format!("blocks.{b}.{l}.bias"), bias)?;
+            }
+        }
+        set("out.weight", &self.out.0)?;
+        set("out.bias", &self.out.1)
+    }
+
     pub fn parameters(&self) -> usize {
         self.vars().iter().map(|v| v.as_tensor().elem_count()).sum()
     }

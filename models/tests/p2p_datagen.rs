@@ -1,6 +1,7 @@
 //! The point-to-point data generator: the same bytes for 1 and 2 threads, a run
 //! stopped after its first chunk resumes to the same bytes, shards merge to the
-//! unsharded data set, settings are checked on resume, and every row is consistent.
+//! unsharded data set, settings are checked on resume, every row is consistent, and
+//! the data set trains a model that loads and predicts.
 
 use engine::{Bounds3, DensityGrid};
 use glam::{UVec3, Vec3};
@@ -97,6 +98,35 @@ fn deterministic_resumable_and_shardable() {
     // Other settings in the same directory are refused, naming the flag.
     let e = run(&P2pSpec { rho: 7.0, ..s.clone() }, Shard::ALL, &a, 1, &never).unwrap_err();
     assert!(e.contains("--rho"), "{e}");
+    // The data set trains (a small residual network), the model files load, predict
+    // finite positive transport for every row, and broken files are refused by name.
+    let out = a.join("model/m");
+    let cfg = models::p2p_train::P2pTrainConfig {
+        arch: models::p2p_net::P2pArch::Residual { width: 16, layers: 2 },
+        epochs: 3,
+        batch: 4,
+        test_fraction: 0.3,
+        ..Default::default()
+    };
+    let side = models::p2p_train::train(&[a.clone()], &cfg, &out, &|_, _| {}).unwrap();
+    assert!(side.test_mse.is_finite() && side.feature_mean.len() == 352);
+    let weights = a.join("model/m.safetensors");
+    for ext in ["json", "loss.csv", "loss.png"] {
+        assert!(a.join(format!("model/m.{ext}")).exists(), "{ext}");
+    }
+    let model = models::p2p_train::P2pModel::load(&weights).unwrap();
+    let mut input = vec![];
+    let mut scratch = Default::default();
+    for (row, tr) in f.chunks(352).zip(t.chunks(5)) {
+        let p = model.predict_features(row, tr[3], &mut input, &mut scratch);
+        assert!(p.is_finite() && p > 0.0, "{p}");
+    }
+    std::fs::write(a.join("model/m.json"), "{}").unwrap();
+    let e = models::p2p_train::P2pModel::load(&weights).err().unwrap();
+    assert!(e.contains("m.json"), "{e}");
+    std::fs::write(&weights, b"junk").unwrap();
+    let e = models::p2p_train::P2pModel::load(&weights).err().unwrap();
+    assert!(e.contains("m.json") || e.contains("m.safetensors"), "{e}");
     for d in [a, b, c, s0, s1, m] {
         std::fs::remove_dir_all(d).ok();
     }

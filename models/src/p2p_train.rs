@@ -1,0 +1,263 @@
+//! Training the point-to-point model (`nimbus train p2p`) and loading it.
+//!
+//! Inputs: every feature through ln(1 + x) (densities and phi_D span decades), then
+//! standardized with the training split's means and deviations. Target: ln of the
+//! local-frame transport D^2 T (lengths divided by the emitter-sensor distance D,
+//! which makes T scale-free), standardized. The split is by data point, not by row:
+//! the rotations of one point share its target and must not straddle train and test.
+//! Written like the global model: OUT.safetensors, OUT.json (architecture, feature
+//! set, transforms, metrics), OUT.loss.csv and OUT.loss.png.
+
+use crate::density_features::{DensityPyramid, LocalFrame, P2pFeatures};
+use crate::p2p_datagen::P2pManifest;
+use crate::p2p_net::{P2pArch, P2pEvaluator, P2pNetwork, P2pScratch};
+use candle_core::Device;
+use engine::Rng;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+pub const MODEL_FORMAT: &str = "nimbus-p2p-model";
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum ArchDesc {
+    Residual { width: usize, layers: usize },
+    Mlp { hidden: Vec<usize> },
+}
+
+impl From<&P2pArch> for ArchDesc {
+    fn from(a: &P2pArch) -> Self {
+        match a {
+            P2pArch::Residual { width, layers } => ArchDesc::Residual { width: *width, layers: *layers },
+            P2pArch::Mlp { hidden } => ArchDesc::Mlp { hidden: hidden.clone() },
+        }
+    }
+}
+
+impl ArchDesc {
+    pub fn arch(&self) -> P2pArch {
+        match self {
+            ArchDesc::Residual { width, layers } => P2pArch::Residual { width: *width, layers: *layers },
+            ArchDesc::Mlp { hidden } => P2pArch::Mlp { hidden: hidden.clone() },
+        }
+    }
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct P2pSidecar {
+    pub format: String,
+    pub arch: ArchDesc,
+    pub features: P2pFeatures,
+    pub feature_mean: Vec<f32>,
+    pub feature_std: Vec<f32>,
+    pub target_mean: f32,
+    pub target_std: f32,
+    /// Medium the data came from (the model is trained for one albedo and g).
+    pub albedo: f32,
+    pub g: f32,
+    pub data: Vec<String>,
+    pub epochs: usize,
+    pub test_mse: f64,
+    /// Median and 90th percentile of |predicted T / true T - 1| on the test points.
+    pub test_rel_error_median: f64,
+    pub test_rel_error_p90: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct P2pTrainConfig {
+    pub arch: P2pArch,
+    pub epochs: usize,
+    pub batch: usize,
+    pub lr: f64,
+    pub seed: u64,
+    pub test_fraction: f64,
+}
+
+impl Default for P2pTrainConfig {
+    fn default() -> Self {
+        P2pTrainConfig { arch: P2pArch::default(), epochs: 20, batch: 250, lr: 1e-3, seed: 1, test_fraction: 0.2 }
+    }
+}
+
+fn err(e: impl std::fmt::Display) -> String {
+    e.to_string()
+}
+
+/// A trained model ready to predict.
+pub struct P2pModel {
+    pub sidecar: P2pSidecar,
+    eval: P2pEvaluator,
+}
+
+impl P2pModel {
+    /// Loads OUT.safetensors with its OUT.json sidecar, naming the file on any problem.
+    pub fn load(weights: &Path) -> Result<Self, String> {
+        let side = weights.with_extension("json");
+        let text = std::fs::read_to_string(&side).map_err(|e| format!("{}: {e}", side.display()))?;
+        let sidecar: P2pSidecar =
+            serde_json::from_str(&text).map_err(|e| format!("{}: not a point-to-point model sidecar: {e}", side.display()))?;
+        if sidecar.format != MODEL_FORMAT {
+            return Err(format!("{}: format {:?} is not {MODEL_FORMAT}", side.display(), sidecar.format));
+        }
+        let n = sidecar.features.len();
+        if sidecar.feature_mean.len() != n || sidecar.feature_std.len() != n {
+            return Err(format!("{}: transforms for {} features, the feature set has {n}", side.display(), sidecar.feature_mean.len()));
+        }
+        let named = candle_core::safetensors::load(weights, &Device::Cpu).map_err(|e| format!("{}: {e}", weights.display()))?;
+        let net = P2pNetwork::new(&sidecar.features, sidecar.arch.arch(), 0, &Device::Cpu).map_err(err)?;
+        net.load_named(&named).map_err(|e| format!("{}: {e}", weights.display()))?;
+        Ok(P2pModel { eval: net.evaluator().map_err(err)?, sidecar })
+    }
+
+    /// Predicted T (world units) between the ends of `frame`, from raw features.
+    pub fn predict_features(&self, raw: &[f32], frame_scale: f32, input: &mut Vec<f32>, scratch: &mut P2pScratch) -> f32 {
+        let s = &self.sidecar;
+        input.clear();
+        input.extend(raw.iter().enumerate().map(|(i, v)| (v.max(0.0).ln_1p() - s.feature_mean[i]) / s.feature_std[i]));
+        let y = self.eval.forward(input, scratch) * s.target_std + s.target_mean;
+        y.exp() / (frame_scale * frame_scale)
+    }
+
+    /// Features and prediction for an emitter-sensor pair.
+    pub fn predict(&self, pyramid: &DensityPyramid, rho: f32, frame: &LocalFrame) -> f32 {
+        let mut raw = vec![0.0; self.sidecar.features.len()];
+        self.sidecar.features.write(pyramid, rho, self.sidecar.albedo, frame, &mut raw);
+        self.predict_features(&raw, frame.scale, &mut Vec::new(), &mut P2pScratch::default())
+    }
+}
+
+/// Trains on complete data sets in `dirs` and writes the model to `out` (.safetensors,
+/// .json, .loss.csv, .loss.png). Returns the sidecar.
+pub fn train(dirs: &[PathBuf], cfg: &P2pTrainConfig, out: &Path, progress: &dyn Fn(usize, f64)) -> Result<P2pSidecar, String> {
+    let mut x = vec![];
+    let mut y = vec![];
+    let mut group = vec![]; // data point id of each row
+    let mut medium: Option<(f32, f32, P2pFeatures)> = None;
+    for (di, d) in dirs.iter().enumerate() {
+        let m = P2pManifest::load(d).map_err(err)?;
+        if !m.complete {
+            return Err(format!("{}: the data set is not complete; finish or merge it first", d.display()));
+        }
+        let s = &m.settings;
+        let this = (s.albedo, s.g, s.features);
+        if medium.is_some_and(|m| m != this) {
+            return Err(format!("{}: another albedo, g or feature set than the first data set", d.display()));
+        }
+        medium = Some(this);
+        let (fs, f) = crate::npy::read_f32(&d.join("features.npy")).map_err(err)?;
+        let (ts, t) = crate::npy::read_f32(&d.join("targets.npy")).map_err(err)?;
+        let n_f = s.features.len();
+        if fs.len() != 2 || fs[1] != n_f || ts != [fs[0], 5] {
+            return Err(format!("{}: features {fs:?} / targets {ts:?} do not match the manifest", d.display()));
+        }
+        for (r, (fr, tr)) in f.chunks_exact(n_f).zip(t.chunks_exact(5)).enumerate() {
+            if !(tr[4] > 0.0 && tr[4].is_finite()) || fr.iter().any(|v| !v.is_finite()) {
+                continue;
+            }
+            x.extend(fr.iter().map(|v| v.max(0.0).ln_1p()));
+            y.push(tr[4].ln());
+            group.push((di as u64) << 40 | (r / s.rotations as usize) as u64);
+        }
+    }
+    let (albedo, g, features) = medium.ok_or("no data sets given")?;
+    let n_f = features.len();
+    let n = y.len();
+    if n < 10 {
+        return Err(format!("only {n} usable rows"));
+    }
+    // Split by data point.
+    let is_test = |gid: u64| Rng::new(cfg.seed, gid, 0x7465_7374).uniform_f64() < cfg.test_fraction;
+    let (train_rows, test_rows): (Vec<usize>, Vec<usize>) = (0..n).partition(|&r| !is_test(group[r]));
+    if train_rows.is_empty() || test_rows.is_empty() {
+        return Err("the split left no training or no test rows; use more data".into());
+    }
+    let mut mean = vec![0.0f64; n_f];
+    let mut var = vec![0.0f64; n_f];
+    for &r in &train_rows {
+        for j in 0..n_f {
+            mean[j] += x[r * n_f + j] as f64;
+        }
+    }
+    mean.iter_mut().for_each(|m| *m /= train_rows.len() as f64);
+    for &r in &train_rows {
+        for j in 0..n_f {
+            var[j] += (x[r * n_f + j] as f64 - mean[j]).powi(2);
+        }
+    }
+    let std: Vec<f32> = var.iter().map(|v| ((v / train_rows.len() as f64).sqrt() as f32).max(1e-6)).collect();
+    let mean: Vec<f32> = mean.iter().map(|m| *m as f32).collect();
+    let ym = train_rows.iter().map(|&r| y[r] as f64).sum::<f64>() / train_rows.len() as f64;
+    let ys = (train_rows.iter().map(|&r| (y[r] as f64 - ym).powi(2)).sum::<f64>() / train_rows.len() as f64).sqrt().max(1e-6);
+    let rows = |set: &[usize]| -> (Vec<f32>, Vec<f32>) {
+        let mut xs = Vec::with_capacity(set.len() * n_f);
+        for &r in set {
+            xs.extend((0..n_f).map(|j| (x[r * n_f + j] - mean[j]) / std[j]));
+        }
+        (xs, set.iter().map(|&r| ((y[r] as f64 - ym) / ys) as f32).collect())
+    };
+    let (xtr, ytr) = rows(&train_rows);
+    let (xte, yte) = rows(&test_rows);
+    let net = P2pNetwork::new(&features, cfg.arch.clone(), cfg.seed, &Device::Cpu).map_err(err)?;
+    let mut history = vec![];
+    let mut csv = String::from("epoch,train_mse,test_mse\n");
+    let eval_mse = |net: &P2pNetwork| -> Result<f64, String> {
+        let e = net.evaluator().map_err(err)?;
+        let mut out = vec![0.0; yte.len()];
+        e.forward_batch(&xte, &mut out, &mut Default::default());
+        Ok(out.iter().zip(&yte).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>() / yte.len() as f64)
+    };
+    for epoch in 0..cfg.epochs {
+        let h = net.fit(&xtr, &ytr, 1, cfg.batch, cfg.lr, cfg.seed.wrapping_add(epoch as u64)).map_err(err)?;
+        let test = eval_mse(&net)?;
+        history.push((epoch as f64 + 1.0, h[0], test));
+        csv.push_str(&format!("{},{},{}\n", epoch + 1, h[0], test));
+        progress(epoch + 1, test);
+    }
+    // Relative error of T on the test rows.
+    let e = net.evaluator().map_err(err)?;
+    let mut pred = vec![0.0; yte.len()];
+    e.forward_batch(&xte, &mut pred, &mut Default::default());
+    let mut rel: Vec<f64> =
+        pred.iter().zip(&yte).map(|(p, t)| ((((p - t) as f64) * ys).exp() - 1.0).abs()).collect();
+    rel.sort_by(f64::total_cmp);
+    let sidecar = P2pSidecar {
+        format: MODEL_FORMAT.into(),
+        arch: (&cfg.arch).into(),
+        features,
+        feature_mean: mean,
+        feature_std: std,
+        target_mean: ym as f32,
+        target_std: ys as f32,
+        albedo,
+        g,
+        data: dirs.iter().map(|d| d.display().to_string()).collect(),
+        epochs: cfg.epochs,
+        test_mse: history.last().map(|h| h.2).unwrap_or(f64::NAN),
+        test_rel_error_median: rel[rel.len() / 2],
+        test_rel_error_p90: rel[(rel.len() * 9 / 10).min(rel.len() - 1)],
+    };
+    let with = |ext: &str| {
+        let mut s = out.as_os_str().to_owned();
+        s.push(ext);
+        PathBuf::from(s)
+    };
+    let weights = with(".safetensors");
+    crate::npy::write_atomically(&weights, |tmp| candle_core::safetensors::save(&net.named(), tmp).map_err(|e| std::io::Error::other(e.to_string())))
+        .map_err(|e| format!("{}: {e}", weights.display()))?;
+    let text = serde_json::to_string_pretty(&sidecar).expect("sidecar serializes");
+    crate::npy::write_bytes_atomically(&with(".json"), text.as_bytes()).map_err(err)?;
+    crate::npy::write_bytes_atomically(&with(".loss.csv"), csv.as_bytes()).map_err(err)?;
+    let series = |label: &str, colour, k: usize| crate::plot::Series {
+        label: label.into(),
+        colour,
+        points: history.iter().map(|h| (h.0, if k == 1 { h.1 } else { h.2 })).collect(),
+    };
+    let png = crate::plot::line_plot_png(
+        "point-to-point model: loss (standardized ln T)",
+        "epoch",
+        "mse",
+        &[series("train", crate::plot::PALETTE[0], 1), series("test", crate::plot::PALETTE[1], 2)],
+    );
+    crate::npy::write_bytes_atomically(&with(".loss.png"), &png).map_err(err)?;
+    Ok(sidecar)
+}
