@@ -160,15 +160,7 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
             let t = std::time::Instant::now();
             let m = datagen::generate(&spec, shard, &args.out, &code_version(), &|n| bar.set_position(n), &cancel)?;
             bar.finish_and_clear();
-            println!(
-                "{} {} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
-                if m.complete { "complete:" } else { "shard done:" },
-                owned,
-                t.elapsed().as_secs_f64(),
-                m.counts.seconds,
-                m.counts.path_samples,
-                args.out.display()
-            );
+            report(m.complete, owned, t, &m.counts, &args.out);
             Ok(())
         }
         DatagenCommand::Merge(args) => {
@@ -184,6 +176,19 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
         }
         DatagenCommand::P2p(args) => datagen_p2p(args),
     }
+}
+
+/// The closing line of a data-generation run.
+fn report(complete: bool, owned: u64, started: std::time::Instant, counts: &datagen::Counts, out: &std::path::Path) {
+    println!(
+        "{} {} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
+        if complete { "complete:" } else { "shard done:" },
+        owned,
+        started.elapsed().as_secs_f64(),
+        counts.seconds,
+        counts.path_samples,
+        out.display()
+    );
 }
 
 /// The cloud of `nimbus datagen p2p --cloud`: a built-in cloud, a modeler preset or a
@@ -251,15 +256,7 @@ fn datagen_p2p(args: P2pArgs) -> Result<()> {
         &cancel,
     )?;
     bar.finish_and_clear();
-    println!(
-        "{} {} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
-        if m.complete { "complete:" } else { "shard done:" },
-        owned,
-        t.elapsed().as_secs_f64(),
-        m.counts.seconds,
-        m.counts.path_samples,
-        args.out.display()
-    );
+    report(m.complete, owned, t, &m.counts, &args.out);
     Ok(())
 }
 

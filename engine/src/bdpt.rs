@@ -34,7 +34,7 @@
 //! Every contribution keeps the path tracer's order bookkeeping: a path with n
 //! scattering vertices is order n, and goes to the low or high buffer by k.
 
-use crate::integrator::{PathSample, RR_MIN_ORDER, RenderSettings, Scene};
+use crate::integrator::{PathSample, RenderSettings, Scene, roulette};
 use crate::medium::FreeFlight;
 use crate::rng::Rng;
 use crate::sampling::{coordinate_system, sample_uniform_disk};
@@ -254,12 +254,8 @@ fn light_path(b: &BdptSettings, scene: &Scene, sun: &crate::light::Sun, rng: &mu
         if lp.len >= b.max_light_vertices as usize || beta <= 0.0 {
             return lp;
         }
-        if lp.len as u32 >= RR_MIN_ORDER && beta < 1.0 {
-            let q = beta.max(0.05);
-            if rng.uniform() >= q {
-                return lp;
-            }
-            beta /= q;
+        if !roulette(lp.len as u32, &mut beta, rng) {
+            return lp;
         }
         let wi = phase.sample(wo, rng.uniform2()).wi;
         match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {
@@ -349,12 +345,8 @@ pub fn trace_strategies(
                 }
             }
         }
-        if order >= RR_MIN_ORDER && beta < 1.0 {
-            let q = beta.max(0.05);
-            if rng.uniform() >= q {
-                return;
-            }
-            beta /= q;
+        if !roulette(order, &mut beta, rng) {
+            return;
         }
         let wi = phase.sample(wo, rng.uniform2()).wi;
         match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {

@@ -96,6 +96,22 @@ impl PathSample {
 /// Russian roulette on throughput starts after this many scattering events.
 pub(crate) const RR_MIN_ORDER: u32 = 3;
 
+/// Russian roulette on throughput after `order` scattering events: from order
+/// RR_MIN_ORDER on, a path with throughput below 1 survives with probability
+/// max(beta, 0.05) and is reweighted. Returns false when the path ends. Shared by the
+/// path tracer, BDPT's subpaths and the point-to-point walks.
+#[inline(always)]
+pub(crate) fn roulette(order: u32, beta: &mut f32, rng: &mut Rng) -> bool {
+    if order >= RR_MIN_ORDER && *beta < 1.0 {
+        let q = beta.max(0.05);
+        if rng.uniform() >= q {
+            return false;
+        }
+        *beta /= q;
+    }
+    true
+}
+
 #[derive(Clone)]
 pub struct Integrator {
     settings: RenderSettings,
@@ -271,13 +287,8 @@ impl Integrator {
                     Self::next_event(scene, sun, x, wo, beta, order, rng, add);
                 }
             }
-            // Russian roulette on throughput.
-            if order >= RR_MIN_ORDER && beta < 1.0 {
-                let q = beta.max(0.05);
-                if rng.uniform() >= q {
-                    return;
-                }
-                beta /= q;
+            if !roulette(order, &mut beta, rng) {
+                return;
             }
             // Continue: sample the phase function (weight p / pdf = 1).
             let wi = phase.sample(wo, rng.uniform2()).wi;

@@ -26,7 +26,7 @@
 //! the transmittance estimate of most weak connections.
 
 use crate::bdpt::MisHeuristic;
-use crate::integrator::RR_MIN_ORDER;
+use crate::integrator::roulette;
 use crate::medium::{FreeFlight, Medium};
 use crate::rng::Rng;
 use crate::sampling::INV_4PI;
@@ -164,12 +164,8 @@ fn subpath(medium: &Medium, x: Vec3, wo: Vec3, max: usize, rng: &mut Rng, out: &
     let (mut x, mut wo, mut beta) = (x, wo, 1.0f32);
     let mut len = 1;
     while len <= max {
-        if len as u32 > RR_MIN_ORDER && beta < 1.0 {
-            let q = beta.max(0.05);
-            if rng.uniform() >= q {
-                break;
-            }
-            beta /= q;
+        if !roulette(len as u32 - 1, &mut beta, rng) {
+            break;
         }
         let wi = phase.sample(wo, rng.uniform2()).wi;
         let FreeFlight::Collision { t } = medium.sample_free_flight(x, wi, f32::INFINITY, rng) else { break };
@@ -246,12 +242,8 @@ pub fn sample_transport_by_segments(
         if s + 1 >= max_k {
             return;
         }
-        if s as u32 >= RR_MIN_ORDER && beta < 1.0 {
-            let q = beta.max(0.05);
-            if rng.uniform() >= q {
-                return;
-            }
-            beta /= q;
+        if !roulette(s as u32, &mut beta, rng) {
+            return;
         }
         let wi = phase.sample(wo, rng.uniform2()).wi;
         let FreeFlight::Collision { t } = medium.sample_free_flight(x, wi, f32::INFINITY, rng) else { return };

@@ -425,7 +425,7 @@ impl Manifest {
 }
 
 /// The settings that differ, as "--flag was A, now B".
-pub fn settings_diff(old: &GlobalSpec, new: &GlobalSpec) -> Option<String> {
+pub fn settings_diff<T: Serialize>(old: &T, new: &T) -> Option<String> {
     let (a, b) = (serde_json::to_value(old).unwrap(), serde_json::to_value(new).unwrap());
     let (a, b) = (a.as_object().unwrap(), b.as_object().unwrap());
     let diffs: Vec<String> = b
@@ -483,35 +483,14 @@ pub fn generate(
     );
     progress(done_points.load(Ordering::Relaxed));
     let n_f = spec.n_features();
-    let results: Vec<Result<bool, DatagenError>> = todo
-        .par_iter()
-        .map(|&c| {
-            let first = c * spec.chunk_size;
-            let points: Option<Vec<DataPoint>> = (first..first + spec.chunk_len(c))
-                .into_par_iter()
-                .map(|i| {
-                    if cancel.load(Ordering::Relaxed) {
-                        return None;
-                    }
-                    let p = generate_point(spec, &fe, i);
-                    progress(done_points.fetch_add(1, Ordering::Relaxed) + 1);
-                    Some(p)
-                })
-                .collect();
-            let Some(points) = points else { return Ok(false) };
-            let mut rows = Vec::with_capacity(points.len() * (n_f + 5));
-            for p in &points {
-                rows.extend_from_slice(&p.features);
-                rows.extend_from_slice(&p.targets());
-            }
-            npy::write_f32(&chunk_path(dir, c), &[points.len(), n_f + 5], &rows)?;
-            Ok(true)
-        })
-        .collect();
-    let mut finished = 0;
-    for r in results {
-        finished += r? as usize;
-    }
+    let finished = write_chunks(dir, &todo, spec.chunk_size, |c| spec.chunk_len(c), n_f + 5, cancel, |i| {
+        let p = generate_point(spec, &fe, i);
+        progress(done_points.fetch_add(1, Ordering::Relaxed) + 1);
+        let mut row = p.features.clone();
+        row.extend_from_slice(&p.targets());
+        (row, p.samples)
+    })?
+    .0;
     manifest.counts.seconds += started.elapsed().as_secs_f64();
     manifest.counts.chunks = (chunks.len() - todo.len() + finished) as u64;
     manifest.save(dir)?;
@@ -524,6 +503,49 @@ pub fn generate(
     manifest.counts.points = spec.shard_points(shard);
     manifest.save(dir)?;
     Ok(manifest)
+}
+
+/// Makes the chunks `todo` in parallel (points in parallel within a chunk): `point(i)`
+/// gives data point i's rows (`cols` values each) and its path samples; each chunk is
+/// written atomically once all its points are done. Stops between points once
+/// `cancel` is set. Returns (chunks written, path samples of the points made). Shared
+/// by the global and the point-to-point generators.
+pub(crate) fn write_chunks(
+    dir: &Path,
+    todo: &[u64],
+    chunk_size: u64,
+    chunk_len: impl Fn(u64) -> u64 + Sync,
+    cols: usize,
+    cancel: &AtomicBool,
+    point: impl Fn(u64) -> (Vec<f32>, u64) + Sync,
+) -> Result<(usize, u64), DatagenError> {
+    let samples = std::sync::atomic::AtomicU64::new(0);
+    let results: Vec<Result<bool, DatagenError>> = todo
+        .par_iter()
+        .map(|&c| {
+            let first = c * chunk_size;
+            let points: Option<Vec<Vec<f32>>> = (first..first + chunk_len(c))
+                .into_par_iter()
+                .map(|i| {
+                    if cancel.load(Ordering::Relaxed) {
+                        return None;
+                    }
+                    let (rows, n) = point(i);
+                    samples.fetch_add(n, Ordering::Relaxed);
+                    Some(rows)
+                })
+                .collect();
+            let Some(points) = points else { return Ok(false) };
+            let rows = points.concat();
+            npy::write_f32(&chunk_path(dir, c), &[rows.len() / cols, cols], &rows)?;
+            Ok(true)
+        })
+        .collect();
+    let mut finished = 0;
+    for r in results {
+        finished += r? as usize;
+    }
+    Ok((finished, samples.load(Ordering::Relaxed)))
 }
 
 /// Joins the chunks of one or more shard directories (or one complete unsharded run)

@@ -11,13 +11,12 @@
 //! once complete `features.npy` [rows, 352] and `targets.npy` [rows, 5]. Point i is a
 //! pure function of (seed, i): the same bytes whatever the thread count or sharding.
 
-use crate::datagen::{Counts, DatagenError, Shard, chunk_path, setting};
+use crate::datagen::{Counts, DatagenError, Shard, chunk_path, setting, settings_diff, write_chunks};
 use crate::density_features::{DensityPyramid, LocalFrame, P2pFeatures, pyramid_for};
 use crate::npy;
 use engine::p2p::{P2pQuery, P2pSettings, sample_query_end, sample_transport};
 use engine::stats::Welford;
 use engine::{DensityGrid, Medium, PhaseFunction, Rng};
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -158,17 +157,6 @@ impl P2pManifest {
     }
 }
 
-fn diff(old: &P2pSpec, new: &P2pSpec) -> Option<String> {
-    let (a, b) = (serde_json::to_value(old).unwrap(), serde_json::to_value(new).unwrap());
-    let (a, b) = (a.as_object().unwrap(), b.as_object().unwrap());
-    let d: Vec<String> = b
-        .iter()
-        .filter(|(k, v)| a.get(*k) != Some(*v))
-        .map(|(k, v)| format!("--{} was {}, now {}", k.replace('_', "-"), a.get(k).cloned().unwrap_or_default(), v))
-        .collect();
-    (!d.is_empty()).then(|| d.join("; "))
-}
-
 /// The rows of data point `index`: `rotations` rows of features + targets.
 pub fn generate_point(spec: &P2pSpec, medium: &Medium, pyramid: &DensityPyramid, index: u64) -> (Vec<f32>, u64) {
     let mut rng = Rng::new(spec.seed, index, 0x7032_7064_6174_61); // "p2pdata"
@@ -226,7 +214,7 @@ pub fn generate(
     let shard_opt = (shard != Shard::ALL).then_some(shard);
     let mut manifest = if dir.join("manifest.json").exists() {
         let m = P2pManifest::load(dir)?;
-        if let Some(d) = diff(&m.settings, spec) {
+        if let Some(d) = settings_diff(&m.settings, spec) {
             return Err(DatagenError::Mismatch { dir: dir.to_owned(), diff: d });
         }
         if m.shard != shard_opt {
@@ -254,35 +242,13 @@ pub fn generate(
     let done = AtomicU64::new(owned - todo.iter().map(|&c| spec.chunk_len(c)).sum::<u64>());
     progress(done.load(Ordering::Relaxed));
     let n_f = spec.n_features();
-    let samples = AtomicU64::new(0);
-    let results: Vec<Result<bool, DatagenError>> = todo
-        .par_iter()
-        .map(|&c| {
-            let first = c * spec.chunk_size;
-            let points: Option<Vec<Vec<f32>>> = (first..first + spec.chunk_len(c))
-                .into_par_iter()
-                .map(|i| {
-                    if cancel.load(Ordering::Relaxed) {
-                        return None;
-                    }
-                    let (rows, n) = generate_point(spec, &medium, &pyramid, i);
-                    samples.fetch_add(n, Ordering::Relaxed);
-                    progress(done.fetch_add(1, Ordering::Relaxed) + 1);
-                    Some(rows)
-                })
-                .collect();
-            let Some(points) = points else { return Ok(false) };
-            let rows: Vec<f32> = points.concat();
-            npy::write_f32(&chunk_path(dir, c), &[rows.len() / (n_f + 5), n_f + 5], &rows)?;
-            Ok(true)
-        })
-        .collect();
-    let mut finished = 0;
-    for r in results {
-        finished += r? as usize;
-    }
+    let (finished, samples) = write_chunks(dir, &todo, spec.chunk_size, |c| spec.chunk_len(c), n_f + 5, cancel, |i| {
+        let out = generate_point(spec, &medium, &pyramid, i);
+        progress(done.fetch_add(1, Ordering::Relaxed) + 1);
+        out
+    })?;
     manifest.counts.seconds += started.elapsed().as_secs_f64();
-    manifest.counts.path_samples += samples.load(Ordering::Relaxed);
+    manifest.counts.path_samples += samples;
     manifest.counts.chunks = (chunks.len() - todo.len() + finished) as u64;
     manifest.save(dir)?;
     if finished < todo.len() {
@@ -302,7 +268,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<P2pManifest, DatagenError> 
     let first = manifests.first().ok_or_else(|| setting("merge", "needs at least one directory"))?;
     let spec = first.settings.clone();
     for (m, d) in manifests.iter().zip(dirs).skip(1) {
-        if let Some(x) = diff(&spec, &m.settings) {
+        if let Some(x) = settings_diff(&spec, &m.settings) {
             return Err(DatagenError::Mismatch { dir: d.clone(), diff: x });
         }
     }
