@@ -51,6 +51,9 @@ pub struct TrainP2pArgs {
     pub seed: u64,
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Go on from OUT.checkpoint (same settings and data).
+    #[arg(long)]
+    pub resume: bool,
 }
 
 fn train_p2p(args: TrainP2pArgs) -> Result<()> {
@@ -74,7 +77,13 @@ fn train_p2p(args: TrainP2pArgs) -> Result<()> {
     };
     let t = std::time::Instant::now();
     let bar = progress_bar(args.epochs as u64, "epochs", false);
-    let side = models::p2p_train::train(&args.data, &cfg, &args.out, &|e, test| {
+    let cancel = Arc::new(AtomicBool::new(false));
+    let flag = cancel.clone();
+    let _ = ctrlc::set_handler(move || {
+        eprintln!("\nstopping after this epoch; rerun with --resume to go on");
+        flag.store(true, Ordering::Relaxed);
+    });
+    let side = models::p2p_train::train(&args.data, &cfg, &args.out, args.resume, &cancel, &|e, test| {
         bar.set_position(e as u64);
         bar.set_message(format!("test mse {test:.4}"));
     })

@@ -206,32 +206,43 @@ impl P2pNetwork {
     /// Trains on rows `x` (n x n_inputs) and targets `y` with Adam and mean squared
     /// error for `epochs` passes in shuffled batches; returns the loss per epoch.
     pub fn fit(&self, x: &[f32], y: &[f32], epochs: usize, batch: usize, lr: f64, seed: u64) -> candle_core::Result<Vec<f64>> {
+        let mut opt = OptState::new(&self.vars())?;
+        (0..epochs).map(|e| self.fit_epoch(x, y, batch, lr, seed.wrapping_add(e as u64), &mut opt)).collect()
+    }
+
+    /// One epoch of [`P2pNetwork::fit`] with the optimizer state kept by the caller
+    /// (checkpoints); the shuffle is a pure function of `seed`. Returns the mean loss.
+    pub(crate) fn fit_epoch(
+        &self,
+        x: &[f32],
+        y: &[f32],
+        batch: usize,
+        lr: f64,
+        seed: u64,
+        opt: &mut OptState,
+    ) -> candle_core::Result<f64> {
         let dev = Device::Cpu;
         let n = y.len();
         let vars = self.vars();
-        let mut opt = OptState::new(&vars)?;
         let mut order: Vec<usize> = (0..n).collect();
         let mut rng = Rng::new(seed, 0x666974, 0);
-        let mut history = vec![];
-        for _ in 0..epochs {
-            for i in (1..n).rev() {
-                order.swap(i, ((rng.uniform_f64() * (i + 1) as f64) as usize).min(i));
-            }
-            let (mut sum, mut count) = (0.0, 0);
-            for chunk in order.chunks(batch.max(1)) {
-                let xb: Vec<f32> = chunk.iter().flat_map(|&r| x[r * self.n_inputs..(r + 1) * self.n_inputs].iter().copied()).collect();
-                let yb: Vec<f32> = chunk.iter().map(|&r| y[r]).collect();
-                let xt = Tensor::from_vec(xb, (chunk.len(), self.n_inputs), &dev)?;
-                let yt = Tensor::from_vec(yb, chunk.len(), &dev)?;
-                let loss = candle_nn::loss::mse(&self.forward(&xt)?, &yt)?;
-                let grads = loss.backward()?;
-                opt.apply(Optimizer::Adam, lr, &vars, &grads)?;
-                sum += loss.to_scalar::<f32>()? as f64 * chunk.len() as f64;
-                count += chunk.len();
-            }
-            history.push(sum / count as f64);
+        for i in (1..n).rev() {
+            order.swap(i, ((rng.uniform_f64() * (i + 1) as f64) as usize).min(i));
         }
-        Ok(history)
+        let (mut sum, mut count) = (0.0, 0);
+        for chunk in order.chunks(batch.max(1)) {
+            let xb: Vec<f32> =
+                chunk.iter().flat_map(|&r| x[r * self.n_inputs..(r + 1) * self.n_inputs].iter().copied()).collect();
+            let yb: Vec<f32> = chunk.iter().map(|&r| y[r]).collect();
+            let xt = Tensor::from_vec(xb, (chunk.len(), self.n_inputs), &dev)?;
+            let yt = Tensor::from_vec(yb, chunk.len(), &dev)?;
+            let loss = candle_nn::loss::mse(&self.forward(&xt)?, &yt)?;
+            let grads = loss.backward()?;
+            opt.apply(Optimizer::Adam, lr, &vars, &grads)?;
+            sum += loss.to_scalar::<f32>()? as f64 * chunk.len() as f64;
+            count += chunk.len();
+        }
+        Ok(sum / count.max(1) as f64)
     }
 }
 

@@ -6,11 +6,13 @@
 //! which makes T scale-free), standardized. The split is by data point, not by row:
 //! the rotations of one point share its target and must not straddle train and test.
 //! Written like the global model: OUT.safetensors, OUT.json (architecture, feature
-//! set, transforms, metrics), OUT.loss.csv and OUT.loss.png.
+//! set, transforms, metrics), OUT.loss.csv and OUT.loss.png, and a checkpoint after
+//! every epoch (OUT.checkpoint/) from which `--resume` goes on.
 
 use crate::density_features::{DensityPyramid, LocalFrame, P2pFeatures};
 use crate::p2p_datagen::P2pManifest;
 use crate::p2p_net::{P2pArch, P2pEvaluator, P2pNetwork, P2pScratch};
+use crate::train::OptState;
 use candle_core::Device;
 use engine::Rng;
 use serde::{Deserialize, Serialize};
@@ -126,9 +128,42 @@ impl P2pModel {
     }
 }
 
+fn with_ext(out: &Path, ext: &str) -> PathBuf {
+    let mut s = out.as_os_str().to_owned();
+    s.push(ext);
+    PathBuf::from(s)
+}
+
+/// What a checkpoint must match to be resumed.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct CheckpointKey {
+    arch: ArchDesc,
+    batch: usize,
+    lr: f64,
+    seed: u64,
+    test_fraction: f64,
+    data: Vec<String>,
+    rows: usize,
+}
+
+#[derive(Serialize, Deserialize)]
+struct Checkpoint {
+    key: CheckpointKey,
+    step: u64,
+    /// (epoch, train mse, test mse) per finished epoch.
+    history: Vec<(f64, f64, f64)>,
+}
+
 /// Trains on complete data sets in `dirs` and writes the model to `out` (.safetensors,
 /// .json, .loss.csv, .loss.png). Returns the sidecar.
-pub fn train(dirs: &[PathBuf], cfg: &P2pTrainConfig, out: &Path, progress: &dyn Fn(usize, f64)) -> Result<P2pSidecar, String> {
+pub fn train(
+    dirs: &[PathBuf],
+    cfg: &P2pTrainConfig,
+    out: &Path,
+    resume: bool,
+    cancel: &std::sync::atomic::AtomicBool,
+    progress: &dyn Fn(usize, f64),
+) -> Result<P2pSidecar, String> {
     let mut x = vec![];
     let mut y = vec![];
     let mut group = vec![]; // data point id of each row
@@ -198,20 +233,78 @@ pub fn train(dirs: &[PathBuf], cfg: &P2pTrainConfig, out: &Path, progress: &dyn 
     let (xtr, ytr) = rows(&train_rows);
     let (xte, yte) = rows(&test_rows);
     let net = P2pNetwork::new(&features, cfg.arch.clone(), cfg.seed, &Device::Cpu).map_err(err)?;
-    let mut history = vec![];
-    let mut csv = String::from("epoch,train_mse,test_mse\n");
+    let vars = net.vars();
+    let mut opt = OptState::new(&vars).map_err(err)?;
+    let mut history: Vec<(f64, f64, f64)> = vec![];
     let eval_mse = |net: &P2pNetwork| -> Result<f64, String> {
         let e = net.evaluator().map_err(err)?;
         let mut out = vec![0.0; yte.len()];
         e.forward_batch(&xte, &mut out, &mut Default::default());
         Ok(out.iter().zip(&yte).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>() / yte.len() as f64)
     };
-    for epoch in 0..cfg.epochs {
-        let h = net.fit(&xtr, &ytr, 1, cfg.batch, cfg.lr, cfg.seed.wrapping_add(epoch as u64)).map_err(err)?;
+    // Checkpoint: OUT.checkpoint/state.json (what was trained so far, on what) and
+    // state.safetensors (parameters and Adam moments), written after every epoch.
+    let ckpt = with_ext(out, ".checkpoint");
+    let key = CheckpointKey {
+        arch: (&cfg.arch).into(),
+        batch: cfg.batch,
+        lr: cfg.lr,
+        seed: cfg.seed,
+        test_fraction: cfg.test_fraction,
+        data: dirs.iter().map(|d| d.display().to_string()).collect(),
+        rows: n,
+    };
+    if resume && ckpt.join("state.json").exists() {
+        let path = ckpt.join("state.json");
+        let text = std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let st: Checkpoint = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        if st.key != key {
+            return Err(format!(
+                "{}: the checkpoint was made with other settings or data; train without --resume to start over",
+                path.display()
+            ));
+        }
+        let t = candle_core::safetensors::load(ckpt.join("state.safetensors"), &Device::Cpu)
+            .map_err(|e| format!("{}: {e}", ckpt.display()))?;
+        for (k, var) in vars.iter().enumerate() {
+            let get = |name: String| t.get(&name).cloned().ok_or_else(|| format!("{}: {name} missing", ckpt.display()));
+            var.set(&get(format!("param.{k}"))?).map_err(err)?;
+            opt.m[k] = get(format!("m.{k}"))?;
+            opt.v[k] = get(format!("v.{k}"))?;
+        }
+        opt.step = st.step;
+        history = st.history;
+    }
+    for epoch in history.len()..cfg.epochs {
+        if cancel.load(std::sync::atomic::Ordering::Relaxed) {
+            return Err(format!(
+                "cancelled after epoch {epoch} of {}; the checkpoint is kept, rerun with --resume to go on",
+                cfg.epochs
+            ));
+        }
+        let train_mse =
+            net.fit_epoch(&xtr, &ytr, cfg.batch, cfg.lr, cfg.seed.wrapping_add(epoch as u64), &mut opt).map_err(err)?;
         let test = eval_mse(&net)?;
-        history.push((epoch as f64 + 1.0, h[0], test));
-        csv.push_str(&format!("{},{},{}\n", epoch + 1, h[0], test));
+        history.push((epoch as f64 + 1.0, train_mse, test));
+        let mut tensors = std::collections::HashMap::new();
+        for (k, var) in vars.iter().enumerate() {
+            tensors.insert(format!("param.{k}"), var.as_tensor().clone());
+            tensors.insert(format!("m.{k}"), opt.m[k].clone());
+            tensors.insert(format!("v.{k}"), opt.v[k].clone());
+        }
+        let state = ckpt.join("state.safetensors");
+        crate::npy::write_atomically(&state, |tmp| {
+            candle_core::safetensors::save(&tensors, tmp).map_err(|e| std::io::Error::other(e.to_string()))
+        })
+        .map_err(|e| format!("{}: {e}", state.display()))?;
+        let st = Checkpoint { key: key.clone(), step: opt.step, history: history.clone() };
+        crate::npy::write_bytes_atomically(&ckpt.join("state.json"), serde_json::to_string(&st).unwrap().as_bytes())
+            .map_err(err)?;
         progress(epoch + 1, test);
+    }
+    let mut csv = String::from("epoch,train_mse,test_mse\n");
+    for h in &history {
+        csv.push_str(&format!("{},{},{}\n", h.0, h.1, h.2));
     }
     // Relative error of T on the test rows.
     let e = net.evaluator().map_err(err)?;
@@ -236,11 +329,7 @@ pub fn train(dirs: &[PathBuf], cfg: &P2pTrainConfig, out: &Path, progress: &dyn 
         test_rel_error_median: rel[rel.len() / 2],
         test_rel_error_p90: rel[(rel.len() * 9 / 10).min(rel.len() - 1)],
     };
-    let with = |ext: &str| {
-        let mut s = out.as_os_str().to_owned();
-        s.push(ext);
-        PathBuf::from(s)
-    };
+    let with = |ext: &str| with_ext(out, ext);
     let weights = with(".safetensors");
     crate::npy::write_atomically(&weights, |tmp| candle_core::safetensors::save(&net.named(), tmp).map_err(|e| std::io::Error::other(e.to_string())))
         .map_err(|e| format!("{}: {e}", weights.display()))?;

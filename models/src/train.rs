@@ -341,9 +341,9 @@ impl Network {
 
 /// Optimizer state: one or two moment tensors per parameter.
 pub(crate) struct OptState {
-    step: u64,
-    m: Vec<Tensor>,
-    v: Vec<Tensor>,
+    pub(crate) step: u64,
+    pub(crate) m: Vec<Tensor>,
+    pub(crate) v: Vec<Tensor>,
 }
 
 impl OptState {

@@ -108,7 +108,23 @@ fn deterministic_resumable_and_shardable() {
         test_fraction: 0.3,
         ..Default::default()
     };
-    let side = models::p2p_train::train(&[a.clone()], &cfg, &out, &|_, _| {}).unwrap();
+    let side = models::p2p_train::train(&[a.clone()], &cfg, &out, false, &never, &|_, _| {}).unwrap();
+    // Stopped after 1 epoch and resumed: the same weights as the straight run.
+    let out2 = a.join("model2/m");
+    let stop = AtomicBool::new(false);
+    let e = models::p2p_train::train(&[a.clone()], &cfg, &out2, false, &stop, &|_, _| stop.store(true, Ordering::Relaxed))
+        .unwrap_err();
+    assert!(e.contains("--resume"), "{e}");
+    models::p2p_train::train(&[a.clone()], &cfg, &out2, true, &never, &|_, _| {}).unwrap();
+    assert_eq!(
+        std::fs::read(a.join("model/m.safetensors")).unwrap(),
+        std::fs::read(a.join("model2/m.safetensors")).unwrap(),
+        "resumed training differs"
+    );
+    // A checkpoint of other settings is refused.
+    let other = models::p2p_train::P2pTrainConfig { lr: 0.5, ..cfg.clone() };
+    let e = models::p2p_train::train(&[a.clone()], &other, &out2, true, &never, &|_, _| {}).unwrap_err();
+    assert!(e.contains("other settings"), "{e}");
     assert!(side.test_mse.is_finite() && side.feature_mean.len() == 352);
     let weights = a.join("model/m.safetensors");
     for ext in ["json", "loss.csv", "loss.png"] {
