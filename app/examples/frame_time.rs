@@ -11,9 +11,8 @@ use egui_kittest::Harness;
 
 fn main() {
     let seconds: u64 = std::env::args().nth(1).and_then(|a| a.parse().ok()).unwrap_or(40);
-    let mut h: Harness<'static, NimbusApp> = Harness::builder()
-        .with_size(egui::vec2(1200.0, 800.0))
-        .build_eframe(|cc| NimbusApp::new(&cc.egui_ctx, None));
+    let mut h: Harness<'static, NimbusApp> =
+        Harness::builder().with_size(egui::vec2(1200.0, 800.0)).build_eframe(|cc| NimbusApp::new(&cc.egui_ctx, None));
     let mut s = h.state().scene().clone();
     s.render.mode = "predict".into();
     (s.camera.width, s.camera.height) = (256, 256);

@@ -435,8 +435,7 @@ pub fn bench_datagen_p2p(args: BenchDatagenP2pArgs) -> Result<()> {
                     cells.push(finished.then(|| total / queries.len() as f64));
                 }
                 let best_ours = cells.iter().flatten().copied().fold(f64::INFINITY, f64::min);
-                let thesis_best = thesis_p2p(rho, albedo, g)
-                    .and_then(|r| r.iter().flatten().copied().reduce(f64::min));
+                let thesis_best = thesis_p2p(rho, albedo, g).and_then(|r| r.iter().flatten().copied().reduce(f64::min));
                 let fmt = |c: &Option<f64>| c.map(|v| format!("{v:.3}")).unwrap_or_else(|| "-".into());
                 println!(
                     "| {rho} | {albedo} | {g} | {} | {} | {} | {} | {} | {} |",

@@ -61,7 +61,9 @@ fn train_p2p(args: TrainP2pArgs) -> Result<()> {
     let arch = match args.arch.as_str() {
         "residual" if args.width > 0 && args.layers > 0 => P2pArch::Residual { width: args.width, layers: args.layers },
         "mlp" if args.hidden.iter().all(|h| *h > 0) => P2pArch::Mlp { hidden: args.hidden.clone() },
-        other => bail!("--arch {other:?} with these sizes is not valid: residual (--width, --layers > 0) or mlp (--hidden > 0)"),
+        other => bail!(
+            "--arch {other:?} with these sizes is not valid: residual (--width, --layers > 0) or mlp (--hidden > 0)"
+        ),
     };
     if args.epochs == 0 || args.batch == 0 || !(args.lr > 0.0) {
         bail!("--epochs, --batch and --lr must be positive");
@@ -433,10 +435,7 @@ pub fn bench_predict_p2p(args: BenchPredictP2pArgs) -> Result<()> {
         let t = std::time::Instant::now();
         let pyramid = pyramid_for(&grid, &spec, 1.0);
         let build = t.elapsed().as_secs_f64();
-        println!(
-            "# nimbus bench predict-p2p: one thread, scene-a {}^3",
-            args.resolution
-        );
+        println!("# nimbus bench predict-p2p: one thread, scene-a {}^3", args.resolution);
         println!(
             "density pyramid: {} levels, {:.1} MiB, built in {:.2} s",
             pyramid.levels(),
@@ -483,11 +482,7 @@ pub fn bench_predict_p2p(args: BenchPredictP2pArgs) -> Result<()> {
             eval.forward_batch(&x, &mut out, &mut bs);
             let batched = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
             std::hint::black_box(sink + out[0]);
-            println!(
-                "| {name} | {} | {single:.1} | {batched:.1} | {:.1} |",
-                net.parameters(),
-                features_us + batched
-            );
+            println!("| {name} | {} | {single:.1} | {batched:.1} | {:.1} |", net.parameters(), features_us + batched);
         }
         Ok(())
     })

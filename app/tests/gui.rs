@@ -222,7 +222,9 @@ fn export_writes_files() {
         h.run_steps(1);
         std::thread::sleep(std::time::Duration::from_millis(20));
     }
-    for (target, name) in [(Target::Exr, "i.exr"), (Target::Png, "i.png"), (Target::Vdb, "c.vdb"), (Target::Scene, "s.toml")] {
+    for (target, name) in
+        [(Target::Exr, "i.exr"), (Target::Png, "i.png"), (Target::Vdb, "c.vdb"), (Target::Scene, "s.toml")]
+    {
         h.state_mut().request(Action::WriteTo(target, dir.join(name)));
         h.run_steps(1);
         let (text, is_error) = h.state().message().cloned().expect("a message");

@@ -308,7 +308,12 @@ pub fn trace_strategies(
                 if tr > 0.0 {
                     let view = PathView { cam: &cam, light: None, c, n: c, to_sun: wi };
                     let weight = mis_weight(&view, phase, lp.area, b);
-                    sink(Contribution { order, strategy: Strategy::NextEvent, value: sun.radiance() * (f * tr), weight });
+                    sink(Contribution {
+                        order,
+                        strategy: Strategy::NextEvent,
+                        value: sun.radiance() * (f * tr),
+                        weight,
+                    });
                 }
             }
             // c < n: connect to each light vertex.
@@ -352,7 +357,12 @@ pub fn trace_strategies(
         match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {
             FreeFlight::Escaped => {
                 if !scene.sky.is_black() {
-                    sink(Contribution { order, strategy: Strategy::Sky, value: scene.sky.radiance * beta, weight: 1.0 });
+                    sink(Contribution {
+                        order,
+                        strategy: Strategy::Sky,
+                        value: scene.sky.radiance * beta,
+                        weight: 1.0,
+                    });
                 }
                 return;
             }
@@ -367,7 +377,14 @@ pub fn trace_strategies(
 }
 
 /// One camera sample's MIS-weighted estimate, split by order into the buffers.
-pub fn trace(settings: &RenderSettings, b: &BdptSettings, scene: &Scene, o: Vec3, d: Vec3, rng: &mut Rng) -> PathSample {
+pub fn trace(
+    settings: &RenderSettings,
+    b: &BdptSettings,
+    scene: &Scene,
+    o: Vec3,
+    d: Vec3,
+    rng: &mut Rng,
+) -> PathSample {
     let mut out = PathSample::default();
     let k = settings.k;
     trace_strategies(settings, b, scene, o, d, rng, &mut |c| {
@@ -400,7 +417,9 @@ mod tests {
                 for n in 1..=14usize {
                     for _ in 0..20 {
                         let pts: Vec<(Vec3, f32)> = (0..=n)
-                            .map(|_| (Vec3::from_array(std::array::from_fn(|_| rng.uniform())), 0.5 + 10.0 * rng.uniform()))
+                            .map(|_| {
+                                (Vec3::from_array(std::array::from_fn(|_| rng.uniform())), 0.5 + 10.0 * rng.uniform())
+                            })
                             .collect();
                         let to_sun = crate::sampling::sample_uniform_sphere(rng.uniform2());
                         let area = 2.0;

@@ -20,10 +20,10 @@ pub mod rng;
 pub mod sampling;
 pub mod stats;
 
+pub use bdpt::{BdptSettings, MisHeuristic};
 pub use camera::Camera;
 pub use film::{Buffer, Film};
 pub use grid::{Bounds3, DensityGrid, GridError};
-pub use bdpt::{BdptSettings, MisHeuristic};
 pub use integrator::{Integrator, Mode, PathSample, RenderSettings, Scene, Technique};
 pub use light::{Sky, Sun};
 pub use medium::{FreeFlight, Medium};

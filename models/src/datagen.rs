@@ -483,13 +483,21 @@ pub fn generate(
     );
     progress(done_points.load(Ordering::Relaxed));
     let n_f = spec.n_features();
-    let finished = write_chunks(dir, &todo, spec.chunk_size, |c| spec.chunk_len(c), n_f + 5, cancel, |i| {
-        let p = generate_point(spec, &fe, i);
-        progress(done_points.fetch_add(1, Ordering::Relaxed) + 1);
-        let mut row = p.features.clone();
-        row.extend_from_slice(&p.targets());
-        (row, p.samples)
-    })?
+    let finished = write_chunks(
+        dir,
+        &todo,
+        spec.chunk_size,
+        |c| spec.chunk_len(c),
+        n_f + 5,
+        cancel,
+        |i| {
+            let p = generate_point(spec, &fe, i);
+            progress(done_points.fetch_add(1, Ordering::Relaxed) + 1);
+            let mut row = p.features.clone();
+            row.extend_from_slice(&p.targets());
+            (row, p.samples)
+        },
+    )?
     .0;
     manifest.counts.seconds += started.elapsed().as_secs_f64();
     manifest.counts.chunks = (chunks.len() - todo.len() + finished) as u64;

@@ -3,14 +3,14 @@
 
 pub mod datagen;
 pub mod density_features;
-pub mod p2p_datagen;
-pub mod p2p_net;
-pub mod p2p_train;
 pub mod depth_field;
 pub mod directions;
 pub mod features;
 pub mod global;
 pub mod ground_truth;
 pub mod npy;
+pub mod p2p_datagen;
+pub mod p2p_net;
+pub mod p2p_train;
 pub mod plot;
 pub mod train;

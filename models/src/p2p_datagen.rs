@@ -140,10 +140,12 @@ impl P2pManifest {
 
     pub fn load(dir: &Path) -> Result<Self, DatagenError> {
         let path = dir.join("manifest.json");
-        let text =
-            std::fs::read_to_string(&path).map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
-        let m: P2pManifest = serde_json::from_str(&text)
-            .map_err(|e| DatagenError::File { path: path.clone(), why: format!("not a point-to-point data set: {e}") })?;
+        let text = std::fs::read_to_string(&path)
+            .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
+        let m: P2pManifest = serde_json::from_str(&text).map_err(|e| DatagenError::File {
+            path: path.clone(),
+            why: format!("not a point-to-point data set: {e}"),
+        })?;
         if m.format != FORMAT || m.format_version != FORMAT_VERSION {
             return Err(DatagenError::File { path, why: format!("format {} v{}", m.format, m.format_version) });
         }
@@ -185,7 +187,8 @@ pub fn generate_point(spec: &P2pSpec, medium: &Medium, pyramid: &DensityPyramid,
     let n_f = spec.n_features();
     let mut rows = vec![0.0f32; spec.rotations as usize * (n_f + 5)];
     for row in rows.chunks_exact_mut(n_f + 5) {
-        let frame = LocalFrame::new(q.emitter, q.sensor, std::f32::consts::TAU * rng.uniform()).expect("distinct points");
+        let frame =
+            LocalFrame::new(q.emitter, q.sensor, std::f32::consts::TAU * rng.uniform()).expect("distinct points");
         spec.features.write(pyramid, spec.rho, spec.albedo, &frame, &mut row[..n_f]);
         row[n_f..].copy_from_slice(&[
             w.mean as f32,
@@ -234,7 +237,8 @@ pub fn generate(
         m
     };
     let phase = PhaseFunction::henyey_greenstein(spec.g).map_err(|e| setting("--g", e))?;
-    let medium = Medium::new(grid.clone(), spec.rho, spec.albedo, phase).map_err(|e| setting("--rho", e.to_string()))?;
+    let medium =
+        Medium::new(grid.clone(), spec.rho, spec.albedo, phase).map_err(|e| setting("--rho", e.to_string()))?;
     let pyramid = spec.pyramid(&grid);
     let chunks: Vec<u64> = (0..spec.n_chunks()).filter(|&c| shard.owns(c)).collect();
     let todo: Vec<u64> = chunks.iter().copied().filter(|&c| !chunk_path(dir, c).exists()).collect();
@@ -242,11 +246,19 @@ pub fn generate(
     let done = AtomicU64::new(owned - todo.iter().map(|&c| spec.chunk_len(c)).sum::<u64>());
     progress(done.load(Ordering::Relaxed));
     let n_f = spec.n_features();
-    let (finished, samples) = write_chunks(dir, &todo, spec.chunk_size, |c| spec.chunk_len(c), n_f + 5, cancel, |i| {
-        let out = generate_point(spec, &medium, &pyramid, i);
-        progress(done.fetch_add(1, Ordering::Relaxed) + 1);
-        out
-    })?;
+    let (finished, samples) = write_chunks(
+        dir,
+        &todo,
+        spec.chunk_size,
+        |c| spec.chunk_len(c),
+        n_f + 5,
+        cancel,
+        |i| {
+            let out = generate_point(spec, &medium, &pyramid, i);
+            progress(done.fetch_add(1, Ordering::Relaxed) + 1);
+            out
+        },
+    )?;
     manifest.counts.seconds += started.elapsed().as_secs_f64();
     manifest.counts.path_samples += samples;
     manifest.counts.chunks = (chunks.len() - todo.len() + finished) as u64;

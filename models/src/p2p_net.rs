@@ -131,7 +131,12 @@ impl P2pNetwork {
                 return Err(format!("{name} has shape {:?}, the architecture {:?}", t.dims(), var.as_tensor().dims()));
             }
             let t = t.to_dtype(DType::F32).map_err(|e| e.to_string())?;
-            if t.flatten_all().and_then(|f| f.to_vec1::<f32>()).map_err(|e| e.to_string())?.iter().any(|v| !v.is_finite()) {
+            if t.flatten_all()
+                .and_then(|f| f.to_vec1::<f32>())
+                .map_err(|e| e.to_string())?
+                .iter()
+                .any(|v| !v.is_finite())
+            {
                 return Err(format!("{name} holds a NaN or infinity"));
             }
             var.set(&t).map_err(|e| e.to_string())
@@ -205,7 +210,15 @@ impl P2pNetwork {
 
     /// Trains on rows `x` (n x n_inputs) and targets `y` with Adam and mean squared
     /// error for `epochs` passes in shuffled batches; returns the loss per epoch.
-    pub fn fit(&self, x: &[f32], y: &[f32], epochs: usize, batch: usize, lr: f64, seed: u64) -> candle_core::Result<Vec<f64>> {
+    pub fn fit(
+        &self,
+        x: &[f32],
+        y: &[f32],
+        epochs: usize,
+        batch: usize,
+        lr: f64,
+        seed: u64,
+    ) -> candle_core::Result<Vec<f64>> {
         let mut opt = OptState::new(&self.vars())?;
         (0..epochs).map(|e| self.fit_epoch(x, y, batch, lr, seed.wrapping_add(e as u64), &mut opt)).collect()
     }

@@ -96,23 +96,34 @@ impl P2pModel {
     pub fn load(weights: &Path) -> Result<Self, String> {
         let side = weights.with_extension("json");
         let text = std::fs::read_to_string(&side).map_err(|e| format!("{}: {e}", side.display()))?;
-        let sidecar: P2pSidecar =
-            serde_json::from_str(&text).map_err(|e| format!("{}: not a point-to-point model sidecar: {e}", side.display()))?;
+        let sidecar: P2pSidecar = serde_json::from_str(&text)
+            .map_err(|e| format!("{}: not a point-to-point model sidecar: {e}", side.display()))?;
         if sidecar.format != MODEL_FORMAT {
             return Err(format!("{}: format {:?} is not {MODEL_FORMAT}", side.display(), sidecar.format));
         }
         let n = sidecar.features.len();
         if sidecar.feature_mean.len() != n || sidecar.feature_std.len() != n {
-            return Err(format!("{}: transforms for {} features, the feature set has {n}", side.display(), sidecar.feature_mean.len()));
+            return Err(format!(
+                "{}: transforms for {} features, the feature set has {n}",
+                side.display(),
+                sidecar.feature_mean.len()
+            ));
         }
-        let named = candle_core::safetensors::load(weights, &Device::Cpu).map_err(|e| format!("{}: {e}", weights.display()))?;
+        let named =
+            candle_core::safetensors::load(weights, &Device::Cpu).map_err(|e| format!("{}: {e}", weights.display()))?;
         let net = P2pNetwork::new(&sidecar.features, sidecar.arch.arch(), 0, &Device::Cpu).map_err(err)?;
         net.load_named(&named).map_err(|e| format!("{}: {e}", weights.display()))?;
         Ok(P2pModel { eval: net.evaluator().map_err(err)?, sidecar })
     }
 
     /// Predicted T (world units) between the ends of `frame`, from raw features.
-    pub fn predict_features(&self, raw: &[f32], frame_scale: f32, input: &mut Vec<f32>, scratch: &mut P2pScratch) -> f32 {
+    pub fn predict_features(
+        &self,
+        raw: &[f32],
+        frame_scale: f32,
+        input: &mut Vec<f32>,
+        scratch: &mut P2pScratch,
+    ) -> f32 {
         let s = &self.sidecar;
         input.clear();
         input.extend(raw.iter().enumerate().map(|(i, v)| (v.max(0.0).ln_1p() - s.feature_mean[i]) / s.feature_std[i]));
@@ -222,7 +233,9 @@ pub fn train(
     let std: Vec<f32> = var.iter().map(|v| ((v / train_rows.len() as f64).sqrt() as f32).max(1e-6)).collect();
     let mean: Vec<f32> = mean.iter().map(|m| *m as f32).collect();
     let ym = train_rows.iter().map(|&r| y[r] as f64).sum::<f64>() / train_rows.len() as f64;
-    let ys = (train_rows.iter().map(|&r| (y[r] as f64 - ym).powi(2)).sum::<f64>() / train_rows.len() as f64).sqrt().max(1e-6);
+    let ys = (train_rows.iter().map(|&r| (y[r] as f64 - ym).powi(2)).sum::<f64>() / train_rows.len() as f64)
+        .sqrt()
+        .max(1e-6);
     let rows = |set: &[usize]| -> (Vec<f32>, Vec<f32>) {
         let mut xs = Vec::with_capacity(set.len() * n_f);
         for &r in set {
@@ -310,8 +323,7 @@ pub fn train(
     let e = net.evaluator().map_err(err)?;
     let mut pred = vec![0.0; yte.len()];
     e.forward_batch(&xte, &mut pred, &mut Default::default());
-    let mut rel: Vec<f64> =
-        pred.iter().zip(&yte).map(|(p, t)| ((((p - t) as f64) * ys).exp() - 1.0).abs()).collect();
+    let mut rel: Vec<f64> = pred.iter().zip(&yte).map(|(p, t)| ((((p - t) as f64) * ys).exp() - 1.0).abs()).collect();
     rel.sort_by(f64::total_cmp);
     let sidecar = P2pSidecar {
         format: MODEL_FORMAT.into(),
@@ -331,8 +343,10 @@ pub fn train(
     };
     let with = |ext: &str| with_ext(out, ext);
     let weights = with(".safetensors");
-    crate::npy::write_atomically(&weights, |tmp| candle_core::safetensors::save(&net.named(), tmp).map_err(|e| std::io::Error::other(e.to_string())))
-        .map_err(|e| format!("{}: {e}", weights.display()))?;
+    crate::npy::write_atomically(&weights, |tmp| {
+        candle_core::safetensors::save(&net.named(), tmp).map_err(|e| std::io::Error::other(e.to_string()))
+    })
+    .map_err(|e| format!("{}: {e}", weights.display()))?;
     let text = serde_json::to_string_pretty(&sidecar).expect("sidecar serializes");
     crate::npy::write_bytes_atomically(&with(".json"), text.as_bytes()).map_err(err)?;
     crate::npy::write_bytes_atomically(&with(".loss.csv"), csv.as_bytes()).map_err(err)?;

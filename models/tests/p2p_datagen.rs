@@ -14,8 +14,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 fn cloud() -> Arc<DensityGrid> {
     let b = Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5));
     Arc::new(
-        DensityGrid::from_fn(UVec3::splat(24), b, |p| (1.0 - (p.length() / 0.45).powi(2)).max(0.0) * (1.0 + 0.5 * (7.0 * p.x).sin()))
-            .unwrap(),
+        DensityGrid::from_fn(UVec3::splat(24), b, |p| {
+            (1.0 - (p.length() / 0.45).powi(2)).max(0.0) * (1.0 + 0.5 * (7.0 * p.x).sin())
+        })
+        .unwrap(),
     )
 }
 
@@ -80,7 +82,19 @@ fn deterministic_resumable_and_shardable() {
     let cancel = AtomicBool::new(false);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     let stopped = pool.install(|| {
-        generate(&s, cloud(), Shard::ALL, &c, "test", &|n| if n >= 2 { cancel.store(true, Ordering::Relaxed) }, &cancel)
+        generate(
+            &s,
+            cloud(),
+            Shard::ALL,
+            &c,
+            "test",
+            &|n| {
+                if n >= 2 {
+                    cancel.store(true, Ordering::Relaxed)
+                }
+            },
+            &cancel,
+        )
     });
     assert!(stopped.is_err(), "the run should have been cancelled");
     assert!(models::datagen::chunk_path(&c, 0).exists());
@@ -112,8 +126,9 @@ fn deterministic_resumable_and_shardable() {
     // Stopped after 1 epoch and resumed: the same weights as the straight run.
     let out2 = a.join("model2/m");
     let stop = AtomicBool::new(false);
-    let e = models::p2p_train::train(&[a.clone()], &cfg, &out2, false, &stop, &|_, _| stop.store(true, Ordering::Relaxed))
-        .unwrap_err();
+    let e =
+        models::p2p_train::train(&[a.clone()], &cfg, &out2, false, &stop, &|_, _| stop.store(true, Ordering::Relaxed))
+            .unwrap_err();
     assert!(e.contains("--resume"), "{e}");
     models::p2p_train::train(&[a.clone()], &cfg, &out2, true, &never, &|_, _| {}).unwrap();
     assert_eq!(

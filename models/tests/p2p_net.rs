@@ -15,11 +15,15 @@ fn rows(n: usize, len: usize, rng: &mut Rng) -> Vec<f32> {
 fn evaluator_matches_candle() {
     let spec = P2pFeatures::default();
     let mut rng = Rng::new(1, 0, 0);
-    for arch in [P2pArch::default(), P2pArch::Residual { width: 16, layers: 2 }, P2pArch::Mlp { hidden: vec![64, 32] }] {
+    for arch in [P2pArch::default(), P2pArch::Residual { width: 16, layers: 2 }, P2pArch::Mlp { hidden: vec![64, 32] }]
+    {
         let net = P2pNetwork::new(&spec, arch.clone(), 7, &Device::Cpu).unwrap();
         let x = rows(8, spec.len(), &mut rng);
-        let want: Vec<f32> =
-            net.forward(&Tensor::from_vec(x.clone(), (8, spec.len()), &Device::Cpu).unwrap()).unwrap().to_vec1().unwrap();
+        let want: Vec<f32> = net
+            .forward(&Tensor::from_vec(x.clone(), (8, spec.len()), &Device::Cpu).unwrap())
+            .unwrap()
+            .to_vec1()
+            .unwrap();
         let eval = net.evaluator().unwrap();
         let mut scratch = eval.scratch();
         let single: Vec<f32> = x.chunks(spec.len()).map(|r| eval.forward(r, &mut scratch)).collect();

@@ -75,7 +75,11 @@ fn bdpt_agrees_with_path_tracing() {
     for n in 1..=3u32 {
         let only = RenderSettings { seed: 10 + n as u64, k: n, max_order: Some(n), ..Default::default() };
         let pt = averages(&scene, &integrator(only, None), passes);
-        let bd = averages(&scene, &integrator(RenderSettings { seed: 20 + n as u64, ..only }, Some(Default::default())), passes);
+        let bd = averages(
+            &scene,
+            &integrator(RenderSettings { seed: 20 + n as u64, ..only }, Some(Default::default())),
+            passes,
+        );
         checks.push((format!("order {n}"), z(&bd[2], &pt[2]), bd[2].mean, pt[2].mean));
     }
     let bound = z_bound(0.01, checks.len());
@@ -106,13 +110,20 @@ fn each_connection_strategy_converges_to_the_same_answer() {
         let pt = averages(&scene, &integrator(only, None), passes);
         for c in 1..n {
             let b = BdptSettings { heuristic: MisHeuristic::Power, max_camera_connect: c, max_light_vertices: n - c };
-            let bd = averages(&scene, &integrator(RenderSettings { seed: 40 + 10 * n as u64 + c as u64, ..only }, Some(b)), passes);
+            let bd = averages(
+                &scene,
+                &integrator(RenderSettings { seed: 40 + 10 * n as u64 + c as u64, ..only }, Some(b)),
+                passes,
+            );
             checks.push((n, c, z(&bd[2], &pt[2]), bd[2].mean, pt[2].mean));
         }
     }
     let bound = z_bound(0.01, checks.len());
     for (n, c, z, bd, pt) in &checks {
-        println!("order {n}, strategy c = {c}: {bd:.5} vs PT {pt:.5} (relative difference {:+.2} %), z {z:+.2} (bound {bound:.2})", 100.0 * (bd / pt - 1.0));
+        println!(
+            "order {n}, strategy c = {c}: {bd:.5} vs PT {pt:.5} (relative difference {:+.2} %), z {z:+.2} (bound {bound:.2})",
+            100.0 * (bd / pt - 1.0)
+        );
     }
     for (n, c, z, bd, pt) in &checks {
         assert!(z.abs() < bound, "order {n} strategy c = {c}: {bd} vs PT {pt}, z = {z:.2}");

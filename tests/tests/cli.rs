@@ -145,8 +145,7 @@ fn memory_bench_writes_its_samples() {
     let dir = temp_dir("memory");
     nimbus(&["bench", "memory", "--seconds", "2", "--interval", "0.5", "--size", "16", "--out", s(&dir)]).unwrap();
     let csv = std::fs::read_to_string(dir.join("memory.csv")).unwrap();
-    let rows: Vec<Vec<f64>> =
-        csv.lines().skip(1).map(|l| l.split(',').map(|v| v.parse().unwrap()).collect()).collect();
+    let rows: Vec<Vec<f64>> = csv.lines().skip(1).map(|l| l.split(',').map(|v| v.parse().unwrap()).collect()).collect();
     assert!(rows.len() >= 4, "{csv}");
     assert!(rows.iter().all(|r| r[1] > 1.0), "resident memory must be positive: {csv}");
     assert!(rows.windows(2).all(|w| w[1][0] > w[0][0]), "times must increase: {csv}");

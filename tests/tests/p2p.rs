@@ -71,7 +71,13 @@ fn independent_estimators_agree() {
     for (i, (name, query, set)) in variants.iter().enumerate() {
         let w = estimate(&medium, query, set, n, 200 + i as u64);
         let z = (w.mean - reference.mean) / (w.std_error().powi(2) + reference.std_error().powi(2)).sqrt();
-        println!("{name}: {:.5} +- {:.5} vs {:.5} +- {:.5}, z {z:+.2}", w.mean, w.std_error(), reference.mean, reference.std_error());
+        println!(
+            "{name}: {:.5} +- {:.5} vs {:.5} +- {:.5}, z {z:+.2}",
+            w.mean,
+            w.std_error(),
+            reference.mean,
+            reference.std_error()
+        );
         assert!(z.abs() < bound, "{name}: {} vs {}: z {z:.2} beyond {bound:.2}", w.mean, reference.mean);
     }
     // Most of it comes from scattered paths, not the direct segment.

@@ -436,7 +436,8 @@ impl NimbusApp {
                 };
                 // Refuse before asking for a file when there is nothing to write.
                 self.worker.mailbox.lock().unwrap().latest.as_ref().context("nothing rendered yet")?;
-                let Some(path) = file_dialog().add_filter(name, &[ext]).set_file_name(format!("nimbus.{ext}")).save_file()
+                let Some(path) =
+                    file_dialog().add_filter(name, &[ext]).set_file_name(format!("nimbus.{ext}")).save_file()
                 else {
                     return Ok(None);
                 };
@@ -659,7 +660,9 @@ impl NimbusApp {
                     ui.label("algorithm");
                     ui.selectable_value(&mut self.scene.render.integrator, "path".to_string(), "unidirectional");
                     ui.selectable_value(&mut self.scene.render.integrator, "bdpt".to_string(), "bidirectional")
-                        .on_hover_text("volumetric BDPT: light subpaths from the sun joined to camera subpaths, with MIS");
+                        .on_hover_text(
+                            "volumetric BDPT: light subpaths from the sun joined to camera subpaths, with MIS",
+                        );
                 });
             }
             ui.add(egui::Slider::new(&mut self.scene.k, 1..=8).text("k (first high order)"));
@@ -760,7 +763,12 @@ impl NimbusApp {
                         let stroke = egui::Stroke::new(2.0, egui::Color32::from_gray(230));
                         ui.painter().vline(x, shown.y_range(), stroke);
                         ui.painter().circle(egui::pos2(x, shown.center().y), 7.0, egui::Color32::from_gray(40), stroke);
-                        caption(ui, rect.min + egui::vec2(8.0, 6.0), egui::Align2::LEFT_TOP, "path tracing (reference)");
+                        caption(
+                            ui,
+                            rect.min + egui::vec2(8.0, 6.0),
+                            egui::Align2::LEFT_TOP,
+                            "path tracing (reference)",
+                        );
                         caption(
                             ui,
                             egui::pos2(rect.max.x - 8.0, rect.min.y + 6.0),
