@@ -154,15 +154,6 @@ impl CompareView {
         }
     }
 
-    /// Waits for the preparation under way (tests).
-    pub fn finish(&mut self, ctx: &egui::Context) {
-        if let Some((_, rx)) = self.pending.take()
-            && let Ok(done) = rx.recv()
-        {
-            self.upload(ctx, done);
-        }
-    }
-
     fn upload(&mut self, ctx: &egui::Context, done: Prepared) {
         self.key = Some(done.key);
         texture(ctx, &mut self.reference, "nimbus-reference", done.size, &done.reference);
