@@ -283,7 +283,6 @@ pub fn trace_strategies(
     let medium = &scene.medium;
     let phase = medium.phase();
     let max_order = settings.max_order.unwrap_or(u32::MAX);
-    let light = scene.sun.as_ref().map(|sun| light_path(b, scene, sun, rng));
     let t = match medium.sample_free_flight(o, d, f32::INFINITY, rng) {
         FreeFlight::Escaped => {
             sink(Contribution { order: 0, strategy: Strategy::Direct, value: scene.sky.radiance, weight: 1.0 });
@@ -291,6 +290,8 @@ pub fn trace_strategies(
         }
         FreeFlight::Collision { t } => t,
     };
+    // The light subpath only once the camera ray has hit the cloud.
+    let light = scene.sun.as_ref().map(|sun| light_path(b, scene, sun, rng));
     let mut cam = CameraRing { origin: o, verts: [Vertex::default(); RING] };
     let (mut x, mut wo, mut beta, mut order) = (o + d * t, -d, medium.albedo(), 1u32);
     loop {
