@@ -401,27 +401,42 @@ impl Manifest {
     }
 
     pub fn load(dir: &Path) -> Result<Manifest, DatagenError> {
-        let path = dir.join("manifest.json");
-        let text = std::fs::read_to_string(&path)
-            .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
-        let m: Manifest = serde_json::from_str(&text).map_err(|e| DatagenError::File {
-            path: path.clone(),
-            why: format!("not a Nimbus data-set manifest: {e}"),
-        })?;
-        if m.format != FORMAT || m.format_version != FORMAT_VERSION {
-            return Err(DatagenError::File {
-                path,
-                why: format!("format {} v{} is not {FORMAT} v{FORMAT_VERSION}", m.format, m.format_version),
-            });
-        }
-        Ok(m)
+        load_manifest(dir, FORMAT, FORMAT_VERSION, "a Nimbus data-set manifest", |m: &Manifest| {
+            (m.format.clone(), m.format_version)
+        })
     }
 
     pub fn save(&self, dir: &Path) -> Result<(), DatagenError> {
-        let path = dir.join("manifest.json");
-        let text = serde_json::to_string_pretty(self).expect("manifest serializes");
-        npy::write_bytes_atomically(&path, text.as_bytes()).map_err(|e| DatagenError::File { path, why: e.to_string() })
+        save_manifest(dir, self)
     }
+}
+
+/// Reads `dir/manifest.json` as a `T` and checks its format and version (`what`
+/// names the kind of file in the error). Shared by both data generators.
+pub(crate) fn load_manifest<T: serde::de::DeserializeOwned>(
+    dir: &Path,
+    format: &str,
+    version: u32,
+    what: &str,
+    format_of: impl Fn(&T) -> (String, u32),
+) -> Result<T, DatagenError> {
+    let path = dir.join("manifest.json");
+    let text =
+        std::fs::read_to_string(&path).map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
+    let m: T = serde_json::from_str(&text)
+        .map_err(|e| DatagenError::File { path: path.clone(), why: format!("not {what}: {e}") })?;
+    let (f, v) = format_of(&m);
+    if f != format || v != version {
+        return Err(DatagenError::File { path, why: format!("format {f} v{v} is not {format} v{version}") });
+    }
+    Ok(m)
+}
+
+/// Writes `dir/manifest.json` atomically.
+pub(crate) fn save_manifest<T: Serialize>(dir: &Path, m: &T) -> Result<(), DatagenError> {
+    let path = dir.join("manifest.json");
+    let text = serde_json::to_string_pretty(m).expect("manifest serializes");
+    npy::write_bytes_atomically(&path, text.as_bytes()).map_err(|e| DatagenError::File { path, why: e.to_string() })
 }
 
 /// The settings that differ, as "--flag was A, now B".

@@ -11,7 +11,9 @@
 //! once complete `features.npy` [rows, 352] and `targets.npy` [rows, 5]. Point i is a
 //! pure function of (seed, i): the same bytes whatever the thread count or sharding.
 
-use crate::datagen::{Counts, DatagenError, Shard, chunk_path, setting, settings_diff, write_chunks};
+use crate::datagen::{
+    Counts, DatagenError, Shard, chunk_path, load_manifest, save_manifest, setting, settings_diff, write_chunks,
+};
 use crate::density_features::{DensityPyramid, LocalFrame, P2pFeatures, pyramid_for};
 use crate::npy;
 use engine::p2p::{P2pQuery, P2pSettings, sample_query_end, sample_transport};
@@ -139,23 +141,13 @@ impl P2pManifest {
     }
 
     pub fn load(dir: &Path) -> Result<Self, DatagenError> {
-        let path = dir.join("manifest.json");
-        let text = std::fs::read_to_string(&path)
-            .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
-        let m: P2pManifest = serde_json::from_str(&text).map_err(|e| DatagenError::File {
-            path: path.clone(),
-            why: format!("not a point-to-point data set: {e}"),
-        })?;
-        if m.format != FORMAT || m.format_version != FORMAT_VERSION {
-            return Err(DatagenError::File { path, why: format!("format {} v{}", m.format, m.format_version) });
-        }
-        Ok(m)
+        load_manifest(dir, FORMAT, FORMAT_VERSION, "a point-to-point data set", |m: &P2pManifest| {
+            (m.format.clone(), m.format_version)
+        })
     }
 
     fn save(&self, dir: &Path) -> Result<(), DatagenError> {
-        let path = dir.join("manifest.json");
-        let text = serde_json::to_string_pretty(self).expect("manifest serializes");
-        npy::write_bytes_atomically(&path, text.as_bytes()).map_err(|e| DatagenError::File { path, why: e.to_string() })
+        save_manifest(dir, self)
     }
 }
 
