@@ -247,7 +247,6 @@ fn light_path(b: &BdptSettings, scene: &Scene, sun: &crate::light::Sun, rng: &mu
         return lp;
     };
     let (mut x, mut wo, mut beta) = (origin + beam * t, -beam, medium.albedo());
-    let phase = medium.phase();
     loop {
         lp.verts[lp.len] = Vertex { x, wo, beta, sigma_t: medium.sigma_t(x) };
         lp.len += 1;
@@ -257,15 +256,9 @@ fn light_path(b: &BdptSettings, scene: &Scene, sun: &crate::light::Sun, rng: &mu
         if !roulette(lp.len as u32, &mut beta, rng) {
             return lp;
         }
-        let wi = phase.sample(wo, rng.uniform2()).wi;
-        match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {
-            FreeFlight::Escaped => return lp,
-            FreeFlight::Collision { t } => {
-                x += wi * t;
-                wo = -wi;
-                beta *= medium.albedo();
-            }
-        }
+        let Some(next) = medium.scatter(x, wo, rng) else { return lp };
+        (x, wo) = next;
+        beta *= medium.albedo();
     }
 }
 
@@ -354,26 +347,15 @@ pub fn trace_strategies(
         if !roulette(order, &mut beta, rng) {
             return;
         }
-        let wi = phase.sample(wo, rng.uniform2()).wi;
-        match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {
-            FreeFlight::Escaped => {
-                if !scene.sky.is_black() {
-                    sink(Contribution {
-                        order,
-                        strategy: Strategy::Sky,
-                        value: scene.sky.radiance * beta,
-                        weight: 1.0,
-                    });
-                }
-                return;
+        let Some(next) = medium.scatter(x, wo, rng) else {
+            if !scene.sky.is_black() {
+                sink(Contribution { order, strategy: Strategy::Sky, value: scene.sky.radiance * beta, weight: 1.0 });
             }
-            FreeFlight::Collision { t } => {
-                x += wi * t;
-                wo = -wi;
-                order += 1;
-                beta *= medium.albedo();
-            }
-        }
+            return;
+        };
+        (x, wo) = next;
+        order += 1;
+        beta *= medium.albedo();
     }
 }
 

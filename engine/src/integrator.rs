@@ -258,7 +258,6 @@ impl Integrator {
         add: &mut impl FnMut(u32, Vec3),
     ) {
         let medium = &scene.medium;
-        let phase = medium.phase();
         let max_order = self.settings.max_order.unwrap_or(u32::MAX);
         loop {
             if order > max_order {
@@ -290,24 +289,17 @@ impl Integrator {
             if !roulette(order, &mut beta, rng) {
                 return;
             }
-            // Continue: sample the phase function (weight p / pdf = 1).
-            let wi = phase.sample(wo, rng.uniform2()).wi;
-            match medium.sample_free_flight(x, wi, f32::INFINITY, rng) {
-                FreeFlight::Escaped => {
-                    if !scene.sky.is_black() && order >= min_order {
-                        add(order, scene.sky.radiance * beta);
-                    }
-                    return;
+            let Some(next) = medium.scatter(x, wo, rng) else {
+                if !scene.sky.is_black() && order >= min_order {
+                    add(order, scene.sky.radiance * beta);
                 }
-                FreeFlight::Collision { t } => {
-                    x += wi * t;
-                    wo = -wi;
-                    order += 1;
-                    beta *= medium.albedo();
-                    if beta <= 0.0 {
-                        return;
-                    }
-                }
+                return;
+            };
+            (x, wo) = next;
+            order += 1;
+            beta *= medium.albedo();
+            if beta <= 0.0 {
+                return;
             }
         }
     }

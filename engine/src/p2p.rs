@@ -159,7 +159,6 @@ fn weight(v: &View, phase: crate::phase::PhaseFunction, set: &P2pSettings) -> f3
 /// Builds a subpath from `x` (interior vertices only; the end point itself is
 /// vertex 0) into `out`, returns its length including vertex 0.
 fn subpath(medium: &Medium, x: Vec3, wo: Vec3, max: usize, rng: &mut Rng, out: &mut [Vertex]) -> usize {
-    let phase = medium.phase();
     out[0] = Vertex { x, wo, beta: 1.0, sigma_t: medium.sigma_t(x) };
     let (mut x, mut wo, mut beta) = (x, wo, 1.0f32);
     let mut len = 1;
@@ -167,10 +166,8 @@ fn subpath(medium: &Medium, x: Vec3, wo: Vec3, max: usize, rng: &mut Rng, out: &
         if !roulette(len as u32 - 1, &mut beta, rng) {
             break;
         }
-        let wi = phase.sample(wo, rng.uniform2()).wi;
-        let FreeFlight::Collision { t } = medium.sample_free_flight(x, wi, f32::INFINITY, rng) else { break };
-        x += wi * t;
-        wo = -wi;
+        let Some(next) = medium.scatter(x, wo, rng) else { break };
+        (x, wo) = next;
         beta *= medium.albedo();
         if beta <= 0.0 {
             break;
@@ -245,10 +242,8 @@ pub fn sample_transport_by_segments(
         if !roulette(s as u32, &mut beta, rng) {
             return;
         }
-        let wi = phase.sample(wo, rng.uniform2()).wi;
-        let FreeFlight::Collision { t } = medium.sample_free_flight(x, wi, f32::INFINITY, rng) else { return };
-        x += wi * t;
-        wo = -wi;
+        let Some(next) = medium.scatter(x, wo, rng) else { return };
+        (x, wo) = next;
         beta *= medium.albedo();
         if beta <= 0.0 {
             return;

@@ -439,6 +439,113 @@ pub(crate) fn save_manifest<T: Serialize>(dir: &Path, m: &T) -> Result<(), Datag
     npy::write_bytes_atomically(&path, text.as_bytes()).map_err(|e| DatagenError::File { path, why: e.to_string() })
 }
 
+/// What the two data generators' manifests share: settings compared on resume, the
+/// shard, completion and counts, and reading and writing.
+pub(crate) trait DataManifest: Sized {
+    type Spec: Serialize;
+    fn create(spec: &Self::Spec, shard: Option<Shard>, code_version: &str) -> Self;
+    fn read(dir: &Path) -> Result<Self, DatagenError>;
+    fn write(&self, dir: &Path) -> Result<(), DatagenError>;
+    fn spec(&self) -> &Self::Spec;
+    fn shard(&self) -> Option<Shard>;
+    fn counts_mut(&mut self) -> &mut Counts;
+}
+
+/// Opens `dir`'s manifest to resume it (refusing other settings or another shard,
+/// naming the flags), or creates it.
+pub(crate) fn open_manifest<M: DataManifest>(
+    dir: &Path,
+    spec: &M::Spec,
+    shard: Shard,
+    code_version: &str,
+) -> Result<M, DatagenError> {
+    let shard = (shard != Shard::ALL).then_some(shard);
+    if !dir.join("manifest.json").exists() {
+        let m = M::create(spec, shard, code_version);
+        m.write(dir)?;
+        return Ok(m);
+    }
+    let m = M::read(dir)?;
+    if let Some(diff) = settings_diff(m.spec(), spec) {
+        return Err(DatagenError::Mismatch { dir: dir.to_owned(), diff });
+    }
+    if m.shard() != shard {
+        return Err(DatagenError::Mismatch {
+            dir: dir.to_owned(),
+            diff: format!("--shard was {:?}, now {:?}", m.shard(), shard),
+        });
+    }
+    Ok(m)
+}
+
+/// How a data set is cut into chunks.
+pub(crate) struct Chunking<'a> {
+    pub n_chunks: u64,
+    pub chunk_size: u64,
+    pub chunk_len: &'a (dyn Fn(u64) -> u64 + Sync),
+    /// Values per row.
+    pub cols: usize,
+}
+
+/// Makes this shard's missing chunks (see [`write_chunks`]), reporting the points done
+/// so far (chunks on disk included) to `progress`, and books the run in the manifest:
+/// seconds, path samples, chunks. Returns the shard's point count, or `Cancelled`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn make_chunks<M: DataManifest>(
+    manifest: &mut M,
+    dir: &Path,
+    chunking: &Chunking,
+    shard: Shard,
+    started: std::time::Instant,
+    progress: &(dyn Fn(u64) + Sync),
+    cancel: &AtomicBool,
+    point: impl Fn(u64) -> (Vec<f32>, u64) + Sync,
+) -> Result<u64, DatagenError> {
+    let chunks: Vec<u64> = (0..chunking.n_chunks).filter(|&c| shard.owns(c)).collect();
+    let todo: Vec<u64> = chunks.iter().copied().filter(|&c| !chunk_path(dir, c).exists()).collect();
+    let owned: u64 = chunks.iter().map(|&c| (chunking.chunk_len)(c)).sum();
+    let done = std::sync::atomic::AtomicU64::new(owned - todo.iter().map(|&c| (chunking.chunk_len)(c)).sum::<u64>());
+    progress(done.load(Ordering::Relaxed));
+    let (finished, samples) =
+        write_chunks(dir, &todo, chunking.chunk_size, chunking.chunk_len, chunking.cols, cancel, |i| {
+            let out = point(i);
+            progress(done.fetch_add(1, Ordering::Relaxed) + 1);
+            out
+        })?;
+    let counts = manifest.counts_mut();
+    counts.seconds += started.elapsed().as_secs_f64();
+    counts.path_samples += samples;
+    counts.chunks = (chunks.len() - todo.len() + finished) as u64;
+    let done_chunks = counts.chunks as usize;
+    manifest.write(dir)?;
+    if finished < todo.len() {
+        return Err(DatagenError::Cancelled { done: done_chunks, total: chunks.len() });
+    }
+    Ok(owned)
+}
+
+impl DataManifest for Manifest {
+    type Spec = GlobalSpec;
+    fn create(spec: &GlobalSpec, shard: Option<Shard>, code_version: &str) -> Self {
+        Manifest::new(spec, shard, code_version)
+    }
+    fn read(dir: &Path) -> Result<Self, DatagenError> {
+        Manifest::load(dir)
+    }
+    fn write(&self, dir: &Path) -> Result<(), DatagenError> {
+        self.save(dir)
+    }
+    fn spec(&self) -> &GlobalSpec {
+        &self.settings
+    }
+    fn shard(&self) -> Option<Shard> {
+        self.shard
+    }
+    fn counts_mut(&mut self) -> &mut Counts {
+        &mut self.counts
+    }
+}
+
 /// The settings that differ, as "--flag was A, now B".
 pub fn settings_diff<T: Serialize>(old: &T, new: &T) -> Option<String> {
     let (a, b) = (serde_json::to_value(old).unwrap(), serde_json::to_value(new).unwrap());
@@ -469,61 +576,27 @@ pub fn generate(
 ) -> Result<Manifest, DatagenError> {
     spec.validate()?;
     let started = std::time::Instant::now();
-    let shard_opt = (shard != Shard::ALL).then_some(shard);
-    let mut manifest = if dir.join("manifest.json").exists() {
-        let m = Manifest::load(dir)?;
-        if let Some(diff) = settings_diff(&m.settings, spec) {
-            return Err(DatagenError::Mismatch { dir: dir.to_owned(), diff });
-        }
-        if m.shard != shard_opt {
-            return Err(DatagenError::Mismatch {
-                dir: dir.to_owned(),
-                diff: format!("--shard was {:?}, now {:?}", m.shard, shard_opt),
-            });
-        }
-        if m.complete {
-            return Ok(m);
-        }
-        m
-    } else {
-        let m = Manifest::new(spec, shard_opt, code_version);
-        m.save(dir)?;
-        m
-    };
-    let fe = FeatureExtractor::with_set(spec.directions, spec.n_dirs).expect("validated");
-    let chunks: Vec<u64> = (0..spec.n_chunks()).filter(|&c| shard.owns(c)).collect();
-    let todo: Vec<u64> = chunks.iter().copied().filter(|&c| !chunk_path(dir, c).exists()).collect();
-    let done_points = std::sync::atomic::AtomicU64::new(
-        spec.shard_points(shard) - todo.iter().map(|&c| spec.chunk_len(c)).sum::<u64>(),
-    );
-    progress(done_points.load(Ordering::Relaxed));
-    let n_f = spec.n_features();
-    let finished = write_chunks(
-        dir,
-        &todo,
-        spec.chunk_size,
-        |c| spec.chunk_len(c),
-        n_f + 5,
-        cancel,
-        |i| {
-            let p = generate_point(spec, &fe, i);
-            progress(done_points.fetch_add(1, Ordering::Relaxed) + 1);
-            let mut row = p.features.clone();
-            row.extend_from_slice(&p.targets());
-            (row, p.samples)
-        },
-    )?
-    .0;
-    manifest.counts.seconds += started.elapsed().as_secs_f64();
-    manifest.counts.chunks = (chunks.len() - todo.len() + finished) as u64;
-    manifest.save(dir)?;
-    if finished < todo.len() {
-        return Err(DatagenError::Cancelled { done: manifest.counts.chunks as usize, total: chunks.len() });
+    let mut manifest: Manifest = open_manifest(dir, spec, shard, code_version)?;
+    if manifest.complete {
+        return Ok(manifest);
     }
+    let fe = FeatureExtractor::with_set(spec.directions, spec.n_dirs).expect("validated");
+    let chunking = Chunking {
+        n_chunks: spec.n_chunks(),
+        chunk_size: spec.chunk_size,
+        chunk_len: &|c| spec.chunk_len(c),
+        cols: spec.n_features() + 5,
+    };
+    let owned = make_chunks(&mut manifest, dir, &chunking, shard, started, progress, cancel, |i| {
+        let p = generate_point(spec, &fe, i);
+        let mut row = p.features.clone();
+        row.extend_from_slice(&p.targets());
+        (row, p.samples)
+    })?;
     if shard == Shard::ALL {
         return merge(&[dir.to_owned()], dir);
     }
-    manifest.counts.points = spec.shard_points(shard);
+    manifest.counts.points = owned;
     manifest.save(dir)?;
     Ok(manifest)
 }

@@ -12,7 +12,8 @@
 //! pure function of (seed, i): the same bytes whatever the thread count or sharding.
 
 use crate::datagen::{
-    Counts, DatagenError, Shard, chunk_path, load_manifest, save_manifest, setting, settings_diff, write_chunks,
+    Chunking, Counts, DataManifest, DatagenError, Shard, chunk_path, load_manifest, make_chunks, open_manifest,
+    save_manifest, setting, settings_diff,
 };
 use crate::density_features::{DensityPyramid, LocalFrame, P2pFeatures, pyramid_for};
 use crate::npy;
@@ -22,7 +23,7 @@ use engine::{DensityGrid, Medium, PhaseFunction, Rng};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::AtomicBool;
 
 pub const FORMAT: &str = "nimbus-p2p-dataset";
 pub const FORMAT_VERSION: u32 = 1;
@@ -206,64 +207,51 @@ pub fn generate(
 ) -> Result<P2pManifest, DatagenError> {
     spec.validate()?;
     let started = std::time::Instant::now();
-    let shard_opt = (shard != Shard::ALL).then_some(shard);
-    let mut manifest = if dir.join("manifest.json").exists() {
-        let m = P2pManifest::load(dir)?;
-        if let Some(d) = settings_diff(&m.settings, spec) {
-            return Err(DatagenError::Mismatch { dir: dir.to_owned(), diff: d });
-        }
-        if m.shard != shard_opt {
-            return Err(DatagenError::Mismatch {
-                dir: dir.to_owned(),
-                diff: format!("--shard was {:?}, now {:?}", m.shard, shard_opt),
-            });
-        }
-        if m.complete {
-            return Ok(m);
-        }
-        m
-    } else {
-        std::fs::create_dir_all(dir).map_err(|e| DatagenError::File { path: dir.to_owned(), why: e.to_string() })?;
-        let m = P2pManifest::new(spec, shard_opt, code_version);
-        m.save(dir)?;
-        m
-    };
+    let mut manifest: P2pManifest = open_manifest(dir, spec, shard, code_version)?;
+    if manifest.complete {
+        return Ok(manifest);
+    }
     let phase = PhaseFunction::henyey_greenstein(spec.g).map_err(|e| setting("--g", e))?;
     let medium =
         Medium::new(grid.clone(), spec.rho, spec.albedo, phase).map_err(|e| setting("--rho", e.to_string()))?;
     let pyramid = spec.pyramid(&grid);
-    let chunks: Vec<u64> = (0..spec.n_chunks()).filter(|&c| shard.owns(c)).collect();
-    let todo: Vec<u64> = chunks.iter().copied().filter(|&c| !chunk_path(dir, c).exists()).collect();
-    let owned: u64 = chunks.iter().map(|&c| spec.chunk_len(c)).sum();
-    let done = AtomicU64::new(owned - todo.iter().map(|&c| spec.chunk_len(c)).sum::<u64>());
-    progress(done.load(Ordering::Relaxed));
-    let n_f = spec.n_features();
-    let (finished, samples) = write_chunks(
-        dir,
-        &todo,
-        spec.chunk_size,
-        |c| spec.chunk_len(c),
-        n_f + 5,
-        cancel,
-        |i| {
-            let out = generate_point(spec, &medium, &pyramid, i);
-            progress(done.fetch_add(1, Ordering::Relaxed) + 1);
-            out
-        },
-    )?;
-    manifest.counts.seconds += started.elapsed().as_secs_f64();
-    manifest.counts.path_samples += samples;
-    manifest.counts.chunks = (chunks.len() - todo.len() + finished) as u64;
-    manifest.save(dir)?;
-    if finished < todo.len() {
-        return Err(DatagenError::Cancelled { done: manifest.counts.chunks as usize, total: chunks.len() });
-    }
+    let chunking = Chunking {
+        n_chunks: spec.n_chunks(),
+        chunk_size: spec.chunk_size,
+        chunk_len: &|c| spec.chunk_len(c),
+        cols: spec.n_features() + 5,
+    };
+    let owned = make_chunks(&mut manifest, dir, &chunking, shard, started, progress, cancel, |i| {
+        generate_point(spec, &medium, &pyramid, i)
+    })?;
     if shard == Shard::ALL {
         return merge(&[dir.to_owned()], dir);
     }
     manifest.counts.points = owned;
     manifest.save(dir)?;
     Ok(manifest)
+}
+
+impl DataManifest for P2pManifest {
+    type Spec = P2pSpec;
+    fn create(spec: &P2pSpec, shard: Option<Shard>, code_version: &str) -> Self {
+        P2pManifest::new(spec, shard, code_version)
+    }
+    fn read(dir: &Path) -> Result<Self, DatagenError> {
+        P2pManifest::load(dir)
+    }
+    fn write(&self, dir: &Path) -> Result<(), DatagenError> {
+        self.save(dir)
+    }
+    fn spec(&self) -> &P2pSpec {
+        &self.settings
+    }
+    fn shard(&self) -> Option<Shard> {
+        self.shard
+    }
+    fn counts_mut(&mut self) -> &mut Counts {
+        &mut self.counts
+    }
 }
 
 /// Joins the chunks of shard directories (or one unsharded run) into `out`.
