@@ -33,13 +33,41 @@
 //!
 //! Every contribution keeps the path tracer's order bookkeeping: a path with n
 //! scattering vertices is order n, and goes to the low or high buffer by k.
+//!
+//! **Prediction mode** (thesis 6.4, [`Prediction`]): the light subpath stops after k
+//! segments (y_1 .. y_k) and BDPT makes exactly the orders 1 ..= 2k, into the low
+//! buffer, with the MIS weights of that capped strategy set. The camera walk goes on
+//! to x_{2k} for them: had it stopped at x_k like the light subpath, the order-2k
+//! paths would have only one strategy, the connection x_k <-> y_k with its
+//! unweighted 1/d^2, whose variance is infinite in a volume (the test against the
+//! path tracer showed it); with the deeper walk, next event estimation and the other
+//! connections share those paths. Every longer path is x_1 .. x_k, then at
+//! least one vertex in between, then y_k .. y_1; their sum over the middle part is
+//! the point-to-point transport T(y_k <-> x_k) minus its one-segment term (the
+//! order-2k path, which BDPT already made). The high buffer therefore gets
+//! L_sun beta_x beta_y A (T_pred - T_1), with T_pred from a [`TransportPredictor`]
+//! and T_1 the one-segment term with the same ratio-tracked transmittance the 2k
+//! connection used (unbiased, and correlated with it). So in this mode the buffers
+//! split at order 2k + 1, not at k: low = 1 ..= 2k, high = 2k + 1 and up.
+//! Pairs closer than the distance threshold r (the thesis's 0.08, about two mean
+//! free paths at rho = 25) are not predicted: the 1/d^2 of the network's answer would
+//! dominate the variance. There the subpaths are extended instead: one sample of the
+//! multi-segment transport by the bidirectional point-to-point estimator of
+//! [`crate::p2p`], which walks on from both end vertices. (The thesis dropped these
+//! pairs, a bias; extending keeps the estimate exact up to the network's error.) The
+//! high term is evaluated with probability p and weighted 1/p, as in the path tracer's
+//! prediction mode. Like that mode, prediction covers the sun: sky light that
+//! scatters more than k times on the camera side is not added.
 
 use crate::integrator::{PathSample, RenderSettings, Scene, roulette};
 use crate::medium::FreeFlight;
+use crate::p2p::{P2pQuery, P2pSettings};
+use crate::predictor::TransportPredictor;
 use crate::rng::Rng;
 use crate::sampling::{coordinate_system, sample_uniform_disk};
 use glam::Vec3;
 use std::f32::consts::PI;
+use std::sync::Arc;
 
 /// How strategies are weighed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -86,6 +114,56 @@ impl BdptSettings {
     }
 }
 
+/// BDPT's prediction mode (thesis 6.4; see the module documentation).
+#[derive(Clone)]
+pub struct Prediction {
+    pub predictor: Arc<dyn TransportPredictor>,
+    /// Segments of each subpath, the thesis's k (1 ..= MAX_LIGHT_VERTICES).
+    pub segments: u32,
+    /// Distance threshold r: closer end vertices are extended, not predicted.
+    pub r: f32,
+    /// Probability of evaluating the high-order term, (0, 1]; weighted 1/p.
+    pub p: f32,
+}
+
+impl std::fmt::Debug for Prediction {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Prediction")
+            .field("predictor", &self.predictor.name())
+            .field("segments", &self.segments)
+            .field("r", &self.r)
+            .field("p", &self.p)
+            .finish()
+    }
+}
+
+impl Prediction {
+    /// The thesis's distance threshold (0.08, about two mean free paths at rho = 25).
+    pub const DEFAULT_R: f32 = 0.08;
+
+    /// The first order the high buffer holds: 2k + 1.
+    pub fn first_predicted_order(&self) -> u32 {
+        2 * self.segments + 1
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if !(1..=MAX_LIGHT_VERTICES).contains(&self.segments) {
+            return Err(format!(
+                "BDPT prediction needs 1 ..= {MAX_LIGHT_VERTICES} segments per subpath, got {}",
+                self.segments
+            ));
+        }
+        // r = infinity extends every pair: exact, and the check of the extension.
+        if !(self.r >= 0.0) {
+            return Err(format!("distance threshold r must be >= 0, got {}", self.r));
+        }
+        if !(self.p > 0.0 && self.p <= 1.0) {
+            return Err(format!("prediction probability p must lie in (0, 1], got {}", self.p));
+        }
+        Ok(())
+    }
+}
+
 /// Which strategy made a contribution.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Strategy {
@@ -97,6 +175,12 @@ pub enum Strategy {
     NextEvent,
     /// Camera vertex `camera` connected to light vertex `light` (c + l = n).
     Connect { camera: u32, light: u32 },
+    /// Prediction mode: the predicted transport between the subpaths' end vertices
+    /// (all orders >= 2k + 1; `order` says 2k + 1).
+    Predicted,
+    /// Prediction mode, end vertices closer than r: the subpaths extended by the
+    /// point-to-point estimator (all orders >= 2k + 1; `order` says 2k + 1).
+    Extended,
 }
 
 /// One unweighted contribution of a strategy and its MIS weight.
@@ -202,7 +286,9 @@ fn q_light(p: &PathView, phase: crate::phase::PhaseFunction, area: f32, i: usize
 }
 
 /// The MIS weight of strategy c for the path `p` (camera vertices 1 ..= c).
-fn mis_weight(p: &PathView, phase: crate::phase::PhaseFunction, area: f32, b: &BdptSettings) -> f32 {
+/// `max_depth` is the deepest camera vertex the walk makes (next event estimation
+/// from x_n needs n <= max_depth; usize::MAX but in prediction mode).
+fn mis_weight(p: &PathView, phase: crate::phase::PhaseFunction, area: f32, b: &BdptSettings, max_depth: usize) -> f32 {
     let (c, n) = (p.c, p.n);
     let (max_c, max_l) = (b.max_camera_connect as usize, b.max_light_vertices as usize);
     let power = |r: f64| match b.heuristic {
@@ -225,7 +311,7 @@ fn mis_weight(p: &PathView, phase: crate::phase::PhaseFunction, area: f32, b: &B
     let mut ratio = 1.0f64;
     for cp in c + 1..=n {
         ratio *= q_camera(p, phase, cp) / q_light(p, phase, area, cp);
-        if cp == n || cp <= max_c {
+        if (cp == n && n <= max_depth) || cp <= max_c {
             sum += power(ratio);
         }
     }
@@ -264,18 +350,37 @@ fn light_path(b: &BdptSettings, scene: &Scene, sun: &crate::light::Sun, rng: &mu
 
 /// Traces one camera sample along o + t d and reports every strategy's unweighted
 /// contribution with its weight (their weighted sum is the sample's estimate).
+/// With `prediction`, BDPT makes orders 1 ..= 2k only and the transport between
+/// the k-th vertices of the two subpaths is predicted (or extended below r).
+#[allow(clippy::too_many_arguments)]
 pub fn trace_strategies(
     settings: &RenderSettings,
     b: &BdptSettings,
+    prediction: Option<&Prediction>,
     scene: &Scene,
     o: Vec3,
     d: Vec3,
     rng: &mut Rng,
     sink: &mut impl FnMut(Contribution),
 ) {
+    // Prediction caps the light subpath at k vertices and the camera walk at 2k, and
+    // BDPT makes orders up to 2k only; the weights know it.
+    let capped;
+    let (b, max_depth) = match prediction {
+        Some(pr) => {
+            capped = BdptSettings {
+                heuristic: b.heuristic,
+                max_camera_connect: 2 * pr.segments,
+                max_light_vertices: pr.segments,
+            };
+            (&capped, 2 * pr.segments as usize)
+        }
+        None => (b, usize::MAX),
+    };
     let medium = &scene.medium;
     let phase = medium.phase();
     let max_order = settings.max_order.unwrap_or(u32::MAX);
+    let max_bdpt_order = prediction.map_or(max_order, |pr| max_order.min(2 * pr.segments));
     let t = match medium.sample_free_flight(o, d, f32::INFINITY, rng) {
         FreeFlight::Escaped => {
             sink(Contribution { order: 0, strategy: Strategy::Direct, value: scene.sky.radiance, weight: 1.0 });
@@ -288,7 +393,7 @@ pub fn trace_strategies(
     let mut cam = CameraRing { origin: o, verts: [Vertex::default(); RING] };
     let (mut x, mut wo, mut beta, mut order) = (o + d * t, -d, medium.albedo(), 1u32);
     loop {
-        if order > max_order || beta <= 0.0 {
+        if order > max_bdpt_order || beta <= 0.0 {
             return;
         }
         let c = order as usize;
@@ -301,7 +406,7 @@ pub fn trace_strategies(
                 let tr = medium.transmittance_ratio(x, wi, f32::INFINITY, rng);
                 if tr > 0.0 {
                     let view = PathView { cam: &cam, light: None, c, n: c, to_sun: wi };
-                    let weight = mis_weight(&view, phase, lp.area, b);
+                    let weight = mis_weight(&view, phase, lp.area, b, max_depth);
                     sink(Contribution {
                         order,
                         strategy: Strategy::NextEvent,
@@ -311,10 +416,11 @@ pub fn trace_strategies(
                 }
             }
             // c < n: connect to each light vertex.
+            let mut t1 = 0.0f32; // prediction mode: the one-segment term x_k <-> y_k
             if order <= b.max_camera_connect {
                 for j in 1..=lp.len {
                     let n = c + j;
-                    if n as u64 > max_order as u64 {
+                    if n as u64 > max_bdpt_order as u64 {
                         break;
                     }
                     let y = &lp.verts[j - 1];
@@ -333,8 +439,11 @@ pub fn trace_strategies(
                     if tr <= 0.0 {
                         continue;
                     }
+                    if prediction.is_some_and(|pr| order == pr.segments && j == lp.len) {
+                        t1 = phase.eval(wo, dir) * phase.eval(y.wo, -dir) / dist2 * tr;
+                    }
                     let view = PathView { cam: &cam, light: Some(lp), c, n, to_sun: -lp.beam };
-                    let weight = mis_weight(&view, phase, lp.area, b);
+                    let weight = mis_weight(&view, phase, lp.area, b, max_depth);
                     sink(Contribution {
                         order: n as u32,
                         strategy: Strategy::Connect { camera: order, light: j as u32 },
@@ -343,6 +452,38 @@ pub fn trace_strategies(
                     });
                 }
             }
+            if let Some(pr) = prediction.filter(|pr| order == pr.segments) {
+                let first = pr.first_predicted_order();
+                if lp.len == pr.segments as usize && first <= max_order && rng.uniform() < pr.p {
+                    let y = &lp.verts[lp.len - 1];
+                    let q = P2pQuery { emitter: y.x, omega_e: y.wo, sensor: x, omega_s: wo };
+                    let scale = beta * y.beta * lp.area / pr.p;
+                    let (strategy, t_multi) = if (y.x - x).length() >= pr.r {
+                        (Strategy::Predicted, pr.predictor.predict(medium, &q, rng) - t1)
+                    } else {
+                        let mut t = 0.0f32;
+                        crate::p2p::sample_transport_by_segments(
+                            medium,
+                            &q,
+                            &P2pSettings::default(),
+                            rng,
+                            &mut |k, v| {
+                                if k >= 2 {
+                                    t += v
+                                }
+                            },
+                        );
+                        (Strategy::Extended, t)
+                    };
+                    let value = sun.radiance() * (scale * t_multi);
+                    if value.is_finite() {
+                        sink(Contribution { order: first, strategy, value, weight: 1.0 });
+                    }
+                }
+            }
+        }
+        if max_depth <= c {
+            return;
         }
         if !roulette(order, &mut beta, rng) {
             return;
@@ -360,17 +501,19 @@ pub fn trace_strategies(
 }
 
 /// One camera sample's MIS-weighted estimate, split by order into the buffers.
+/// In prediction mode the split is at 2k + 1 (module documentation).
 pub fn trace(
     settings: &RenderSettings,
     b: &BdptSettings,
+    prediction: Option<&Prediction>,
     scene: &Scene,
     o: Vec3,
     d: Vec3,
     rng: &mut Rng,
 ) -> PathSample {
     let mut out = PathSample::default();
-    let k = settings.k;
-    trace_strategies(settings, b, scene, o, d, rng, &mut |c| {
+    let k = prediction.map_or(settings.k, Prediction::first_predicted_order);
+    trace_strategies(settings, b, prediction, scene, o, d, rng, &mut |c| {
         let v = c.value * c.weight;
         if c.order == 0 {
             out.direct += v;
@@ -395,9 +538,18 @@ mod tests {
         let mut rng = Rng::new(5, 0, 0);
         let phase = PhaseFunction::HenyeyGreenstein { g: 0.7 };
         for heuristic in [MisHeuristic::Balance, MisHeuristic::Power] {
-            for (max_c, max_l) in [(8u32, 8u32), (2, 3), (1, 1), (20, 32)] {
+            // depth < usize::MAX: prediction mode, the camera walk stops at max_c.
+            for (max_c, max_l, depth) in [
+                (8u32, 8u32, usize::MAX),
+                (2, 3, usize::MAX),
+                (1, 1, usize::MAX),
+                (20, 32, usize::MAX),
+                (2, 2, 2),
+                (4, 4, 4),
+            ] {
                 let b = BdptSettings { heuristic, max_camera_connect: max_c, max_light_vertices: max_l };
-                for n in 1..=14usize {
+                let max_n = if depth == usize::MAX { 14 } else { 2 * depth };
+                for n in 1..=max_n {
                     for _ in 0..20 {
                         let pts: Vec<(Vec3, f32)> = (0..=n)
                             .map(|_| {
@@ -409,7 +561,7 @@ mod tests {
                         let mut total = 0.0f64;
                         for c in 1..=n {
                             let l = n - c;
-                            let feasible = c == n || (c <= max_c as usize && l <= max_l as usize);
+                            let feasible = (c == n && n <= depth) || (c <= max_c as usize && l <= max_l as usize);
                             if !feasible {
                                 continue;
                             }
@@ -429,7 +581,7 @@ mod tests {
                                 lp.verts[j - 1] = Vertex { x: p.0, sigma_t: p.1, ..Default::default() };
                             }
                             let view = PathView { cam: &cam, light: (l > 0).then_some(&lp), c, n, to_sun };
-                            total += mis_weight(&view, phase, area, &b) as f64;
+                            total += mis_weight(&view, phase, area, &b, depth) as f64;
                         }
                         assert!((total - 1.0).abs() < 1e-4, "n {n} caps ({max_c}, {max_l}) {heuristic:?}: {total}");
                     }

@@ -61,7 +61,10 @@ pub enum IntegratorError {
     NoPredictor,
     #[error("prediction mode needs a sun: the model predicts light from a directional light")]
     NoSun,
-    #[error("prediction at bounce k is not available with BDPT yet: use the path tracer for prediction")]
+    #[error(
+        "prediction with BDPT needs a point-to-point transport model (a trained `nimbus train p2p` model); \
+         the path tracer's prediction needs the global model"
+    )]
     BdptPredict,
     #[error("{0}")]
     BadBdpt(String),
@@ -117,6 +120,8 @@ pub struct Integrator {
     settings: RenderSettings,
     predictor: Option<Arc<dyn InScatterPredictor>>,
     technique: Technique,
+    /// BDPT's prediction mode (thesis 6.4), set by [`Integrator::bdpt_prediction`].
+    transport: Option<crate::bdpt::Prediction>,
 }
 
 impl std::fmt::Debug for Integrator {
@@ -125,6 +130,7 @@ impl std::fmt::Debug for Integrator {
             .field("settings", &self.settings)
             .field("predictor", &self.predictor.as_ref().map(|p| p.name().to_string()))
             .field("technique", &self.technique)
+            .field("transport", &self.transport)
             .finish()
     }
 }
@@ -145,19 +151,60 @@ impl Integrator {
                 return Err(IntegratorError::NoPredictor);
             }
         }
-        Ok(Integrator { settings, predictor, technique: Technique::PathTracing })
+        Ok(Integrator { settings, predictor, technique: Technique::PathTracing, transport: None })
+    }
+
+    /// BDPT with prediction between the subpaths (thesis 6.4): `settings.mode` must be
+    /// `Predict { p }`, `settings.k` is the number of segments of each subpath, and the
+    /// buffers split at order 2k + 1 (see [`crate::bdpt`]). `r` is the distance
+    /// threshold below which the subpaths are extended instead of predicted.
+    pub fn bdpt_prediction(
+        settings: RenderSettings,
+        b: crate::bdpt::BdptSettings,
+        predictor: Arc<dyn crate::predictor::TransportPredictor>,
+        r: f32,
+    ) -> Result<Self, IntegratorError> {
+        let Mode::Predict { p } = settings.mode else {
+            return Err(IntegratorError::BadBdpt("BDPT prediction needs mode = predict".into()));
+        };
+        if settings.k < 1 {
+            return Err(IntegratorError::BadK(settings.k));
+        }
+        b.validate().map_err(IntegratorError::BadBdpt)?;
+        let prediction = crate::bdpt::Prediction { predictor, segments: settings.k, r, p };
+        prediction.validate().map_err(IntegratorError::BadBdpt)?;
+        Ok(Integrator { settings, predictor: None, technique: Technique::Bdpt(b), transport: Some(prediction) })
     }
 
     /// The same integrator with another light transport algorithm.
     pub fn with_technique(mut self, technique: Technique) -> Result<Self, IntegratorError> {
-        if let Technique::Bdpt(b) = technique {
-            if matches!(self.settings.mode, Mode::Predict { .. }) {
-                return Err(IntegratorError::BdptPredict);
+        match technique {
+            Technique::Bdpt(b) => {
+                if matches!(self.settings.mode, Mode::Predict { .. }) && self.transport.is_none() {
+                    return Err(IntegratorError::BdptPredict);
+                }
+                b.validate().map_err(IntegratorError::BadBdpt)?;
             }
-            b.validate().map_err(IntegratorError::BadBdpt)?;
+            Technique::PathTracing => {
+                if matches!(self.settings.mode, Mode::Predict { .. }) && self.predictor.is_none() {
+                    return Err(IntegratorError::NoPredictor);
+                }
+                self.transport = None;
+            }
         }
         self.technique = technique;
         Ok(self)
+    }
+
+    /// BDPT's prediction settings, in that mode.
+    pub fn transport_prediction(&self) -> Option<&crate::bdpt::Prediction> {
+        self.transport.as_ref()
+    }
+
+    /// The first scattering order of the high buffer: k, or 2k + 1 for BDPT's
+    /// prediction mode.
+    pub fn high_order_start(&self) -> u32 {
+        self.transport.as_ref().map_or(self.settings.k, crate::bdpt::Prediction::first_predicted_order)
     }
 
     pub fn technique(&self) -> Technique {
@@ -185,7 +232,7 @@ impl Integrator {
     #[inline]
     pub fn trace(&self, scene: &Scene, o: Vec3, d: Vec3, rng: &mut Rng) -> PathSample {
         if let Technique::Bdpt(b) = &self.technique {
-            return crate::bdpt::trace(&self.settings, b, scene, o, d, rng);
+            return crate::bdpt::trace(&self.settings, b, self.transport.as_ref(), scene, o, d, rng);
         }
         let mut out = PathSample::default();
         match scene.medium.sample_free_flight(o, d, f32::INFINITY, rng) {

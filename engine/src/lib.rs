@@ -3,7 +3,9 @@
 //! Delta tracking over a majorant grid, next event estimation toward a directional
 //! sun, ratio-tracked shadow rays, deterministic ray-marched optical depth, phase
 //! functions of the thesis, and accumulation buffers split by scattering order
-//! (CONVENTIONS.md). A learned predictor plugs in through [`InScatterPredictor`].
+//! (CONVENTIONS.md). A learned predictor plugs in through [`InScatterPredictor`] (the
+//! path tracer's prediction at bounce k) or [`TransportPredictor`] (BDPT's prediction
+//! between its two subpaths).
 
 pub mod bdpt;
 pub mod camera;
@@ -28,6 +30,6 @@ pub use integrator::{Integrator, Mode, PathSample, RenderSettings, Scene, Techni
 pub use light::{Sky, Sun};
 pub use medium::{FreeFlight, Medium};
 pub use phase::PhaseFunction;
-pub use predictor::InScatterPredictor;
+pub use predictor::{InScatterPredictor, TransportPredictor};
 pub use render::{PassOutcome, RenderControl, Renderer};
 pub use rng::Rng;

@@ -31,3 +31,22 @@ pub trait InScatterPredictor: Send + Sync {
         "predictor"
     }
 }
+
+/// Predicts the point-to-point transport T(x_e, w_e <-> x_s, w_s) of thesis eq. 6.1
+/// (see [`crate::p2p`]) between two points inside `medium`, for BDPT's prediction
+/// mode (thesis 6.4): every path between the two points, the single segment joining
+/// them included, with the phase function as the directional profile at both ends
+/// and no scattering coefficient at the ends. World units (T scales as 1 / length^2).
+///
+/// `rng` is there for predictors that are themselves estimators (an unbiased one
+/// makes the prediction mode unbiased, which the tests use) or that randomise their
+/// input (a network's random rotation about the emitter-sensor axis). Called from
+/// many render threads at once: no allocation per call.
+pub trait TransportPredictor: Send + Sync {
+    fn predict(&self, medium: &Medium, q: &crate::p2p::P2pQuery, rng: &mut crate::rng::Rng) -> f32;
+
+    /// A short name for logs and reports.
+    fn name(&self) -> &str {
+        "transport predictor"
+    }
+}

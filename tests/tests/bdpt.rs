@@ -130,11 +130,119 @@ fn each_connection_strategy_converges_to_the_same_answer() {
     }
 }
 
+/// A "predictor" that is one sample of the unbiased point-to-point estimator: with it
+/// BDPT's prediction mode must be unbiased, so any error in the plumbing (the caps
+/// and weights of the low orders, the subpaths' throughputs, the one-segment term
+/// taken out of T, the extension below r, the 1/p) shows against the path tracer.
+struct ExactTransport;
+
+impl engine::TransportPredictor for ExactTransport {
+    fn predict(&self, medium: &engine::Medium, q: &engine::p2p::P2pQuery, rng: &mut Rng) -> f32 {
+        engine::p2p::sample_transport(medium, q, &Default::default(), rng)
+    }
+}
+
+/// A predictor 30 % too high: the test must see it.
+struct BiasedTransport;
+
+impl engine::TransportPredictor for BiasedTransport {
+    fn predict(&self, medium: &engine::Medium, q: &engine::p2p::P2pQuery, rng: &mut Rng) -> f32 {
+        1.3 * engine::p2p::sample_transport(medium, q, &Default::default(), rng)
+    }
+}
+
+fn predicting(seed: u64, k: u32, r: f32, p: f32) -> Integrator {
+    let settings = RenderSettings { seed, k, mode: engine::Mode::Predict { p }, ..Default::default() };
+    Integrator::bdpt_prediction(settings, Default::default(), std::sync::Arc::new(ExactTransport), r).unwrap()
+}
+
+/// BDPT's prediction mode (k segments per subpath: orders 1 ..= 2k by BDPT into low,
+/// the transport between the end vertices into high) with an exact predictor agrees
+/// with the path tracer split at 2k + 1: most pairs predicted (r = 0.1), all pairs
+/// extended (r = infinity), and a mix (r = 0.3, about two mean free paths at the
+/// cloud's mean density here), for k = 1 and 2, with p < 1.
+#[test]
+fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
+    let scene = scene(0.0);
+    let passes = std::env::var("BDPT_PASSES").ok().and_then(|v| v.parse().ok()).unwrap_or(6000);
+    let runs = [(1u32, 0.1f32, 0.5f32), (1, f32::INFINITY, 1.0), (2, 0.3, 0.5)];
+    let mut checks = vec![];
+    for (i, &(k, r, p)) in runs.iter().enumerate() {
+        let integ = predicting(60 + i as u64, k, r, p);
+        assert_eq!(integ.high_order_start(), 2 * k + 1);
+        let pt = averages(
+            &scene,
+            &integrator(RenderSettings { seed: 70 + i as u64, k: 2 * k + 1, ..Default::default() }, None),
+            passes,
+        );
+        let bd = averages(&scene, &integ, passes);
+        for (b, name) in [(1, "low"), (2, "high")] {
+            checks.push((format!("k {k} r {r} p {p} {name}"), z(&bd[b], &pt[b]), bd[b].mean, pt[b].mean));
+        }
+    }
+    // The mixed run really takes both branches.
+    let (mut predicted, mut extended) = (0, 0);
+    let integ = predicting(1, 2, 0.3, 1.0);
+    let cam = &scene.camera;
+    for px in 0..cam.width() * cam.height() {
+        let mut rng = Rng::new(3, 0, px as u64);
+        let (o, d) = cam.generate_ray(px % cam.width(), px / cam.width(), Vec2::splat(0.5));
+        for _ in 0..200 {
+            engine::bdpt::trace_strategies(
+                integ.settings(),
+                &Default::default(),
+                integ.transport_prediction(),
+                &scene,
+                o,
+                d,
+                &mut rng,
+                &mut |c| match c.strategy {
+                    engine::bdpt::Strategy::Predicted => predicted += 1,
+                    engine::bdpt::Strategy::Extended => extended += 1,
+                    _ => assert!(c.order <= 4, "BDPT made order {} beyond 2k with k = 2", c.order),
+                },
+            );
+        }
+    }
+    println!("mixed run: {predicted} pairs predicted, {extended} extended");
+    assert!(predicted > 50 && extended > 50, "predicted {predicted}, extended {extended}");
+    let bound = z_bound(0.01, checks.len());
+    for (name, z, bd, pt) in &checks {
+        println!("{name}: BDPT-predict {bd:.5} PT {pt:.5} z {z:+.2} (bound {bound:.2})");
+    }
+    for (name, z, bd, pt) in &checks {
+        assert!(z.abs() < bound, "{name}: BDPT-predict {bd} vs PT {pt}, z = {z:.2} beyond {bound:.2}");
+    }
+    assert!(checks.iter().all(|c| c.3 > 1e-3), "{checks:?}");
+    // The same comparison sees a predictor that is 30 % off.
+    let settings = RenderSettings { seed: 80, k: 1, mode: engine::Mode::Predict { p: 0.5 }, ..Default::default() };
+    let biased = Integrator::bdpt_prediction(settings, Default::default(), std::sync::Arc::new(BiasedTransport), 0.1);
+    let bd = averages(&scene, &biased.unwrap(), passes);
+    let pt = averages(&scene, &integrator(RenderSettings { seed: 81, k: 3, ..Default::default() }, None), passes);
+    let zb = z(&bd[2], &pt[2]);
+    println!("30 % biased predictor: high {:.5} vs PT {:.5}, z {zb:+.2}", bd[2].mean, pt[2].mean);
+    assert!(zb > bound, "a 30 % biased predictor went unseen: z = {zb:.2}");
+}
+
 /// BDPT refuses prediction mode and bad caps with a message, and is deterministic.
 #[test]
 fn bdpt_settings_are_checked_and_results_repeat() {
     let pred = Integrator::new(RenderSettings { mode: engine::Mode::Predict { p: 0.5 }, ..Default::default() }, None);
     assert!(pred.is_err(), "prediction needs a predictor anyway");
+    let pred_settings = RenderSettings { mode: engine::Mode::Predict { p: 0.5 }, k: 40, ..Default::default() };
+    let e = Integrator::bdpt_prediction(pred_settings, Default::default(), std::sync::Arc::new(ExactTransport), 0.08)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("segments"), "{e}");
+    let e = Integrator::bdpt_prediction(
+        RenderSettings::default(),
+        Default::default(),
+        std::sync::Arc::new(ExactTransport),
+        0.08,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("mode = predict"), "{e}");
     let i = Integrator::new(RenderSettings::default(), None).unwrap();
     let bad = BdptSettings { max_light_vertices: 0, ..Default::default() };
     let e = i.clone().with_technique(Technique::Bdpt(bad)).unwrap_err().to_string();
