@@ -39,12 +39,26 @@ pub enum Command {
     },
     /// The thesis's evaluation of the global model: bias, TTUV and speedup against path
     /// tracing per scene, lighting, density and k; tables, plots and image sheets.
-    Eval(crate::eval_cmd::EvalArgs),
+    /// `nimbus eval p2p` evaluates the point-to-point model instead (thesis 6.5).
+    #[command(args_conflicts_with_subcommands = true)]
+    Eval {
+        #[command(subcommand)]
+        which: Option<EvalCommand>,
+        #[command(flatten)]
+        args: crate::eval_cmd::EvalArgs,
+    },
     /// Benchmarks.
     Bench {
         #[command(subcommand)]
         which: BenchCommand,
     },
+}
+
+#[derive(Subcommand, Debug)]
+pub enum EvalCommand {
+    /// The point-to-point model in BDPT (thesis 6.5): bias, TTUV and speedup against
+    /// BDPT's high orders and against path tracing, backlit and frontlit, k = 1 .. 4.
+    P2p(crate::eval_p2p::EvalP2pArgs),
 }
 
 #[derive(Args, Debug)]
@@ -82,9 +96,14 @@ pub struct RenderArgs {
     #[arg(long)]
     pub quiet: bool,
     /// Prediction mode at bounce K: vertices 1 .. K-1 path traced, the learned model
-    /// predicts the rest at vertex K (overrides the scene's render.mode and k).
+    /// predicts the rest at vertex K (overrides the scene's render.mode and k). With
+    /// --integrator bdpt: K segments on each subpath, orders 1 .. 2K by BDPT and the
+    /// point-to-point model between the subpaths' ends (buffers split at 2K + 1).
     #[arg(long, value_name = "K")]
     pub predict: Option<u32>,
+    /// Full light transport, no prediction (overrides a scene's render.mode = "predict").
+    #[arg(long, conflicts_with = "predict")]
+    pub reference: bool,
     /// Prediction probability p in (0, 1] (Russian roulette on the prediction).
     #[arg(long)]
     pub p: Option<f32>,
@@ -94,10 +113,17 @@ pub struct RenderArgs {
     /// The global model (.safetensors + .json sidecar); default: the shipped model.
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Light transport for reference renders: path (default) or bdpt (volumetric
-    /// bidirectional path tracing with MIS); overrides the scene's render.integrator.
+    /// Light transport: path (default) or bdpt (volumetric bidirectional path
+    /// tracing with MIS); overrides the scene's render.integrator.
     #[arg(long, value_name = "path|bdpt")]
     pub integrator: Option<String>,
+    /// The point-to-point model for --integrator bdpt --predict K (.safetensors +
+    /// .json); default: the shipped single-cloud model.
+    #[arg(long)]
+    pub p2p_model: Option<PathBuf>,
+    /// Distance threshold r of BDPT prediction (default 0.08).
+    #[arg(long)]
+    pub r: Option<f32>,
 }
 
 #[derive(Args, Debug)]
@@ -259,7 +285,10 @@ pub fn run(cli: Cli) -> Result<()> {
         #[cfg(feature = "gui")]
         Some(Command::Bench { which: BenchCommand::Memory(args) }) => bench_memory(args),
         Some(Command::Train { which }) => crate::train_cmd::train(which),
-        Some(Command::Eval(args)) => crate::eval_cmd::eval(&args).map(|_| ()),
+        Some(Command::Eval { which: Some(EvalCommand::P2p(args)), .. }) => {
+            crate::eval_p2p::eval_p2p(&args).map(|_| ())
+        }
+        Some(Command::Eval { which: None, args }) => crate::eval_cmd::eval(&args).map(|_| ()),
     }
 }
 
@@ -329,19 +358,24 @@ fn render(args: RenderArgs) -> Result<()> {
         file.k = k;
         file.render.mode = "predict".into();
     }
+    if args.reference {
+        file.render.mode = "reference".into();
+    }
     if let Some(p) = args.p {
         file.render.p = p;
     }
     if let Some(i) = &args.integrator {
         file.render.integrator = i.clone();
     }
-    file.validate()?;
-    if file.render.integrator == "bdpt" && file.render.mode == "predict" {
-        eprintln!("note: prediction mode path traces its low orders; --integrator bdpt applies to reference renders");
+    if let Some(r) = args.r {
+        file.render.r = r;
     }
     if let Some(m) = &args.model {
         // Relative to where nimbus runs, like every other path on the command line.
         file.render.model = Some(std::path::absolute(m)?.display().to_string());
+    }
+    if let Some(m) = &args.p2p_model {
+        file.render.p2p_model = Some(std::path::absolute(m)?.display().to_string());
     }
     file.validate()?;
     let scene = Arc::new(file.build_scene(None)?);
@@ -366,7 +400,16 @@ fn render(args: RenderArgs) -> Result<()> {
             "reference (BDPT)".to_string()
         }
         engine::Mode::Reference => "reference".to_string(),
-        engine::Mode::Predict { p } => format!("predict (k {}, p {p})", integrator.settings().k),
+        engine::Mode::Predict { p } => match integrator.transport_prediction() {
+            Some(pr) => format!(
+                "predict (BDPT, k {} segments, orders {}+ by {}, r {}, p {p})",
+                pr.segments,
+                pr.first_predicted_order(),
+                pr.predictor.name(),
+                pr.r
+            ),
+            None => format!("predict (k {}, p {p})", integrator.settings().k),
+        },
     };
     let bar = progress_bar(args.spp as u64, "spp", args.quiet);
     let outcome = render_spp(scene.clone(), integrator, args.spp, &control, |done| bar.set_position(done as u64))?;

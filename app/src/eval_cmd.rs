@@ -170,7 +170,7 @@ pub struct Image {
 }
 
 impl Image {
-    fn from_film(film: &Film, b: Buffer) -> Self {
+    pub fn from_film(film: &Film, b: Buffer) -> Self {
         Image { w: film.width(), h: film.height(), mean: film.mean(b), var: film.variance_of_mean(b) }
     }
 }
@@ -277,17 +277,17 @@ pub fn relative_rmse(img: &[[f32; 3]], reference: &[[f32; 3]], mask: &[bool]) ->
 }
 
 /// What a tracked render returns.
-struct Tracked {
-    film: Film,
+pub(crate) struct Tracked {
+    pub film: Film,
     /// Seconds spent rendering passes (the RMSE checks are not counted).
-    seconds: f64,
+    pub seconds: f64,
     /// Render seconds until the image first came within 5 % relative RMSE.
     preview_secs: Option<f64>,
 }
 
 /// Renders up to `spp` passes; with a reference, checks the relative RMSE after every
 /// pass and, if `stop_at_preview`, stops once it is within [`PREVIEW_RMSE`].
-fn render_tracked(
+pub(crate) fn render_tracked(
     scene: Arc<Scene>,
     integrator: Integrator,
     spp: u32,
@@ -320,7 +320,7 @@ fn render_tracked(
     Ok(Tracked { film: r.snapshot(), seconds, preview_secs })
 }
 
-fn image_npy(img: &[Vec<[f32; 3]>], w: u32, h: u32) -> Vec<u8> {
+pub(crate) fn image_npy(img: &[Vec<[f32; 3]>], w: u32, h: u32) -> Vec<u8> {
     let mut flat = Vec::with_capacity(img.len() * (w * h * 3) as usize);
     for i in 0..(w * h) as usize {
         for layer in img {
@@ -331,7 +331,7 @@ fn image_npy(img: &[Vec<[f32; 3]>], w: u32, h: u32) -> Vec<u8> {
 }
 
 /// Reads an (h, w, 3 n) image stack back as n layers.
-fn read_image_npy(path: &Path, w: u32, h: u32, n: usize) -> Result<Vec<Vec<[f32; 3]>>> {
+pub(crate) fn read_image_npy(path: &Path, w: u32, h: u32, n: usize) -> Result<Vec<Vec<[f32; 3]>>> {
     let (shape, data) = models::npy::read_f32(path)?;
     if shape != [h as usize, w as usize, 3 * n] {
         bail!("{}: shape {shape:?}, expected [{h}, {w}, {}]", path.display(), 3 * n);
@@ -361,11 +361,11 @@ fn cell_key(key: &str, k: u32, args: &EvalArgs) -> String {
     format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}_{model}", args.spp, args.spp_ref, args.field_nodes)
 }
 
-fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
+pub(crate) fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
     Ok(write_bytes_atomically(path, serde_json::to_string_pretty(v)?.as_bytes())?)
 }
 
-fn read_json<T: for<'a> Deserialize<'a>>(path: &Path) -> Option<T> {
+pub(crate) fn read_json<T: for<'a> Deserialize<'a>>(path: &Path) -> Option<T> {
     serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
 }
 

@@ -5,6 +5,7 @@ pub mod cli;
 pub mod cloud;
 pub mod datagen_cmd;
 pub mod eval_cmd;
+pub mod eval_p2p;
 #[cfg(feature = "gui")]
 pub mod gui;
 pub mod mitsuba;

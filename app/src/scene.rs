@@ -27,6 +27,7 @@ use engine::{
 };
 use glam::Vec3;
 use models::global::{BoundGlobalModel, GlobalModel, ModelError};
+use models::p2p_train::{BoundP2pModel, P2pModel};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -213,12 +214,25 @@ pub struct RenderDesc {
     /// relative to the scene file. Default: the shipped model, compiled into nimbus.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub model: Option<String>,
-    /// Light transport of the reference mode: "path" (unidirectional path tracing,
-    /// the default) or "bdpt" (volumetric bidirectional path tracing with MIS).
-    /// Prediction mode always path traces its low orders (BDPT prediction between
-    /// subpaths is not implemented yet).
+    /// Light transport: "path" (unidirectional path tracing, the default) or "bdpt"
+    /// (volumetric bidirectional path tracing with MIS). With mode = "predict",
+    /// "path" predicts at bounce k with the global model (thesis ch. 5) and "bdpt"
+    /// predicts the transport between k-segment subpaths with the point-to-point
+    /// model (thesis 6.4; the buffers then split at order 2k + 1).
     #[serde(skip_serializing_if = "is_path")]
     pub integrator: String,
+    /// A point-to-point model for integrator = "bdpt", mode = "predict", relative to
+    /// the scene file. Default: the shipped single-cloud model.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub p2p_model: Option<String>,
+    /// Distance threshold r of BDPT prediction: closer end vertices are extended, not
+    /// predicted. Default 0.08 (the thesis's, about two mean free paths at rho = 25).
+    #[serde(skip_serializing_if = "is_default_r")]
+    pub r: f32,
+}
+
+fn is_default_r(r: &f32) -> bool {
+    *r == engine::bdpt::Prediction::DEFAULT_R
 }
 
 fn is_path(s: &str) -> bool {
@@ -227,7 +241,14 @@ fn is_path(s: &str) -> bool {
 
 impl Default for RenderDesc {
     fn default() -> Self {
-        RenderDesc { mode: "reference".into(), p: 0.25, model: None, integrator: "path".into() }
+        RenderDesc {
+            mode: "reference".into(),
+            p: 0.25,
+            model: None,
+            integrator: "path".into(),
+            p2p_model: None,
+            r: engine::bdpt::Prediction::DEFAULT_R,
+        }
     }
 }
 
@@ -399,6 +420,9 @@ impl SceneFile {
         if !(self.render.p > 0.0 && self.render.p <= 1.0) {
             return Err(range_err("render.p", self.render.p, "(0, 1]"));
         }
+        if !(self.render.r >= 0.0) {
+            return Err(range_err("render.r", self.render.r, "[0, infinity]"));
+        }
         Ok(())
     }
 
@@ -538,6 +562,9 @@ impl SceneFile {
         if self.render.mode != "predict" {
             return Ok(IntegratorSetup { integrator: self.integrator_with(None)?, warning: None });
         }
+        if self.render.integrator == "bdpt" {
+            return self.bdpt_prediction(scene, cache);
+        }
         let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("prediction mode needs a sun".into()))?;
         let key = PredictorKey::new(self, scene, max_nodes);
         if let Some((k, bound)) = &cache.last {
@@ -564,6 +591,60 @@ impl SceneFile {
     }
 }
 
+impl SceneFile {
+    /// Where `render.p2p_model` points (resolved against the scene file), if set.
+    pub fn p2p_model_path(&self) -> Option<PathBuf> {
+        let m = self.render.p2p_model.as_ref()?;
+        Some(match &self.base_dir {
+            Some(dir) => dir.join(m),
+            None => PathBuf::from(m),
+        })
+    }
+
+    /// The point-to-point model: `render.p2p_model`, else the shipped one.
+    pub fn load_p2p_model(&self) -> Result<Arc<P2pModel>, String> {
+        match self.p2p_model_path() {
+            Some(path) => P2pModel::load(&path).map(Arc::new),
+            None => P2pModel::shipped(),
+        }
+    }
+
+    /// BDPT with the point-to-point model between its subpaths; the model bound to
+    /// the cloud (its density pyramid) is reused from `cache` while the cloud, rho
+    /// and model stay the same. A model that cannot be loaded falls back to BDPT
+    /// without prediction, with a warning.
+    fn bdpt_prediction(&self, scene: &Scene, cache: &mut PredictorCache) -> Result<IntegratorSetup, SceneError> {
+        let err = |e: engine::integrator::IntegratorError| SceneError::Invalid(format!("render: {e}"));
+        if scene.sun.is_none() {
+            return Err(SceneError::Invalid("prediction mode needs a sun".into()));
+        }
+        let key = PredictorKey { sun: [0; 3], nodes: 0, model: self.p2p_model_path(), ..PredictorKey::new(self, scene, 0) };
+        let bound = match &cache.p2p {
+            Some((k, bound)) if *k == key => bound.clone(),
+            _ => match self.load_p2p_model() {
+                Ok(model) => {
+                    let bound = Arc::new(BoundP2pModel::new(model, &scene.medium));
+                    cache.p2p = Some((key, bound.clone()));
+                    bound
+                }
+                Err(e) => {
+                    let mut reference = self.clone();
+                    reference.render.mode = "reference".into();
+                    return Ok(IntegratorSetup {
+                        integrator: reference.integrator_with(None)?,
+                        warning: Some(format!(
+                            "cannot use the point-to-point model ({e}); rendering by BDPT without prediction instead"
+                        )),
+                    });
+                }
+            },
+        };
+        let warning = bound.mismatch(&scene.medium);
+        let integrator = Integrator::bdpt_prediction(self.settings(), Default::default(), bound, self.render.r).map_err(err)?;
+        Ok(IntegratorSetup { integrator, warning })
+    }
+}
+
 /// What a bound model depends on (the grid by identity: a cached grid is shared).
 #[derive(Clone, Debug, PartialEq)]
 struct PredictorKey {
@@ -579,6 +660,7 @@ struct PredictorKey {
 #[derive(Default)]
 pub struct PredictorCache {
     last: Option<(PredictorKey, Arc<BoundGlobalModel>)>,
+    p2p: Option<(PredictorKey, Arc<BoundP2pModel>)>,
 }
 
 impl PredictorKey {
@@ -612,6 +694,38 @@ mod tests {
     use super::*;
 
     const MINIMAL: &str = "[grid]\nbuiltin = \"cumulus\"\nresolution = 16\n";
+
+    /// BDPT prediction loads the shipped point-to-point model without any file, splits
+    /// the buffers at 2k + 1, warns about a medium the model was not trained for,
+    /// falls back with a warning naming a missing model file, and rejects a bad r.
+    #[test]
+    fn bdpt_prediction_uses_the_shipped_p2p_model() {
+        let text = format!(
+            "k = 2\n{MINIMAL}[medium]\nrho = 25.0\nalbedo = 0.99\nphase = \"isotropic\"\n\
+             [render]\nmode = \"predict\"\nintegrator = \"bdpt\"\n"
+        );
+        let s = SceneFile::from_toml_str(&text, "t").unwrap();
+        s.validate().unwrap();
+        let scene = s.build_scene(None).unwrap();
+        let setup = s.integrator(&scene, 16).unwrap();
+        assert!(setup.warning.is_none(), "{:?}", setup.warning);
+        let pr = setup.integrator.transport_prediction().expect("BDPT prediction");
+        assert_eq!((pr.segments, pr.first_predicted_order()), (2, 5));
+        assert!(pr.predictor.name().contains("point-to-point"), "{}", pr.predictor.name());
+        let mut other = s.clone();
+        other.medium.albedo = 0.8;
+        let warn = other.integrator(&other.build_scene(None).unwrap(), 16).unwrap().warning.unwrap();
+        assert!(warn.contains("albedo 0.99") && warn.contains("extrapolation"), "{warn}");
+        let mut missing = s.clone();
+        missing.render.p2p_model = Some("/nonexistent/p2p-model.safetensors".into());
+        let setup = missing.integrator(&scene, 16).unwrap();
+        assert!(setup.integrator.transport_prediction().is_none());
+        let warn = setup.warning.unwrap();
+        assert!(warn.contains("p2p-model.json") || warn.contains("p2p-model.safetensors"), "{warn}");
+        let mut bad = s.clone();
+        bad.render.r = -1.0;
+        assert!(bad.validate().unwrap_err().to_string().contains("render.r"));
+    }
 
     #[test]
     fn minimal_scene_has_defaults() {

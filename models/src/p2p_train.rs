@@ -37,6 +37,13 @@ impl From<&P2pArch> for ArchDesc {
 }
 
 impl ArchDesc {
+    pub fn describe(&self) -> String {
+        match self {
+            ArchDesc::Residual { width, layers } => format!("residual, {width} units x {layers} layers per block"),
+            ArchDesc::Mlp { hidden } => format!("MLP {hidden:?}"),
+        }
+    }
+
     pub fn arch(&self) -> P2pArch {
         match self {
             ArchDesc::Residual { width, layers } => P2pArch::Residual { width: *width, layers: *layers },
@@ -91,12 +98,36 @@ pub struct P2pModel {
     eval: P2pEvaluator,
 }
 
+/// Where the shipped point-to-point model lives in the repository; it is compiled
+/// into the binary, so BDPT's prediction mode works without any file.
+pub const SHIPPED_PATH: &str = "assets/models/p2p.safetensors";
+const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../assets/models/p2p.safetensors");
+const SHIPPED_SIDECAR: &str = include_str!("../../assets/models/p2p.json");
+
 impl P2pModel {
     /// Loads OUT.safetensors with its OUT.json sidecar, naming the file on any problem.
     pub fn load(weights: &Path) -> Result<Self, String> {
         let side = weights.with_extension("json");
         let text = std::fs::read_to_string(&side).map_err(|e| format!("{}: {e}", side.display()))?;
-        let sidecar: P2pSidecar = serde_json::from_str(&text)
+        let bytes = std::fs::read(weights).map_err(|e| format!("{}: {e}", weights.display()))?;
+        Self::from_bytes(&bytes, &text, weights)
+    }
+
+    /// The shipped single-cloud model (`assets/models/p2p.*`), loaded once.
+    pub fn shipped() -> Result<std::sync::Arc<P2pModel>, String> {
+        static SHIPPED: std::sync::OnceLock<Result<std::sync::Arc<P2pModel>, String>> = std::sync::OnceLock::new();
+        SHIPPED
+            .get_or_init(|| {
+                Self::from_bytes(SHIPPED_WEIGHTS, SHIPPED_SIDECAR, Path::new(SHIPPED_PATH)).map(std::sync::Arc::new)
+            })
+            .clone()
+    }
+
+    /// A model from its weights' bytes and its sidecar's text; `weights` names it in
+    /// messages.
+    pub fn from_bytes(bytes: &[u8], text: &str, weights: &Path) -> Result<Self, String> {
+        let side = weights.with_extension("json");
+        let sidecar: P2pSidecar = serde_json::from_str(text)
             .map_err(|e| format!("{}: not a point-to-point model sidecar: {e}", side.display()))?;
         if sidecar.format != MODEL_FORMAT {
             return Err(format!("{}: format {:?} is not {MODEL_FORMAT}", side.display(), sidecar.format));
@@ -109,8 +140,8 @@ impl P2pModel {
                 sidecar.feature_mean.len()
             ));
         }
-        let named =
-            candle_core::safetensors::load(weights, &Device::Cpu).map_err(|e| format!("{}: {e}", weights.display()))?;
+        let named = candle_core::safetensors::load_buffer(bytes, &Device::Cpu)
+            .map_err(|e| format!("{}: {e}", weights.display()))?;
         let net = P2pNetwork::new(&sidecar.features, sidecar.arch.arch(), 0, &Device::Cpu).map_err(err)?;
         net.load_named(&named).map_err(|e| format!("{}: {e}", weights.display()))?;
         Ok(P2pModel { eval: net.evaluator().map_err(err)?, sidecar })
@@ -136,6 +167,77 @@ impl P2pModel {
         let mut raw = vec![0.0; self.sidecar.features.len()];
         self.sidecar.features.write(pyramid, rho, self.sidecar.albedo, frame, &mut raw);
         self.predict_features(&raw, frame.scale, &mut Vec::new(), &mut P2pScratch::default())
+    }
+}
+
+thread_local! {
+    /// Per render thread: raw features, network input and the network's scratch.
+    static SCRATCH: std::cell::RefCell<(Vec<f32>, Vec<f32>, P2pScratch)> =
+        std::cell::RefCell::new((Vec::new(), Vec::new(), P2pScratch::default()));
+}
+
+/// A point-to-point model bound to one cloud: its density pyramid is built once
+/// here (about 0.7 s and 56 MiB for a 128^3 grid), after which a prediction is the
+/// feature lookups and one network evaluation, without allocation (per-thread
+/// scratch). Plugs into BDPT's prediction mode as an [`engine::TransportPredictor`].
+pub struct BoundP2pModel {
+    model: std::sync::Arc<P2pModel>,
+    pyramid: DensityPyramid,
+    rho: f32,
+    name: String,
+}
+
+impl BoundP2pModel {
+    pub fn new(model: std::sync::Arc<P2pModel>, medium: &engine::Medium) -> Self {
+        let grid = medium.grid();
+        let pyramid = crate::density_features::pyramid_for(grid, &model.sidecar.features, grid.bounds().extent().length());
+        let name = format!("point-to-point model ({})", model.sidecar.arch.describe());
+        BoundP2pModel { model, pyramid, rho: medium.rho(), name }
+    }
+
+    /// Why this model may not fit `medium` (it is trained for one albedo and an
+    /// isotropic phase function), if it may not.
+    pub fn mismatch(&self, medium: &engine::Medium) -> Option<String> {
+        let s = &self.model.sidecar;
+        let g = match medium.phase() {
+            engine::PhaseFunction::HenyeyGreenstein { g } => g,
+            engine::PhaseFunction::Isotropic => 0.0,
+            _ => f32::NAN,
+        };
+        let off = (medium.albedo() - s.albedo).abs() > 1e-3 || !((g - s.g).abs() <= 1e-3);
+        off.then(|| {
+            format!(
+                "the point-to-point model was trained for albedo {} and g {}; this medium has albedo {} and {:?}: \
+                 its predictions are extrapolations",
+                s.albedo,
+                s.g,
+                medium.albedo(),
+                medium.phase()
+            )
+        })
+    }
+
+    pub fn model(&self) -> &P2pModel {
+        &self.model
+    }
+}
+
+impl engine::TransportPredictor for BoundP2pModel {
+    fn predict(&self, _medium: &engine::Medium, q: &engine::p2p::P2pQuery, rng: &mut Rng) -> f32 {
+        // A random rotation about the emitter-sensor axis, as in training.
+        let Some(frame) = LocalFrame::new(q.emitter, q.sensor, std::f32::consts::TAU * rng.uniform()) else {
+            return 0.0;
+        };
+        SCRATCH.with_borrow_mut(|(raw, input, scratch)| {
+            let s = &self.model.sidecar;
+            raw.resize(s.features.len(), 0.0);
+            s.features.write(&self.pyramid, self.rho, s.albedo, &frame, raw);
+            self.model.predict_features(raw, frame.scale, input, scratch)
+        })
+    }
+
+    fn name(&self) -> &str {
+        &self.name
     }
 }
 

@@ -75,6 +75,8 @@ fn build_job(
         let mut rs = file.clone();
         rs.render.mode = "reference".into();
         rs.seed = rs.seed.wrapping_add(1);
+        // BDPT's prediction splits the buffers at 2k + 1: the reference must too.
+        rs.k = setup.integrator.high_order_start();
         let integ = rs.integrator_with(None).map_err(|e| e.to_string())?;
         Some(Renderer::new(scene.clone(), integ).map_err(|e| e.to_string())?)
     } else {
@@ -170,7 +172,8 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             let mut upgrade = None;
             let built = grid.map_err(|e| e.to_string()).and_then(|g| {
                 let built = Arc::new(scene.build_scene(Some(g)).map_err(|e| e.to_string())?);
-                let nodes = if coarse || scene.render.mode != "predict" {
+                // (The point-to-point model of BDPT prediction has no depth field.)
+                let nodes = if coarse || scene.render.mode != "predict" || scene.render.integrator == "bdpt" {
                     COARSE_FIELD_NODES
                 } else if predictors.has(&scene, &built, full_nodes) {
                     full_nodes

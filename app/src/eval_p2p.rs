@@ -1,0 +1,461 @@
+//! `nimbus eval p2p`: the point-to-point model's evaluation (thesis 6.5).
+//!
+//! One cloud (scene A of the modeler, the cloud the shipped model was trained on) at
+//! rho = 25, albedo 0.99, isotropic, backlit and frontlit, k = 1 .. 4 segments per
+//! subpath. Per configuration and k:
+//! - the high-order reference: BDPT without prediction, buffers split at 2k + 1
+//!   (`--spp-ref` samples; thesis: 16k), whose high buffer is also the baseline of
+//!   the speedup, as in the thesis's table 6.3;
+//! - BDPT with prediction (`--spp`; thesis: 4k), one per model: the shipped or
+//!   `--model` single-cloud model, and `--multi-model` if given;
+//! - per configuration, full transport by unidirectional path tracing (`--spp-ref`),
+//!   the honest comparison the thesis also made.
+//!
+//! Figures of merit: the thesis's bias (mean absolute error of the high-order image
+//! over all pixels, linear), CONVENTIONS.md's bias and relative bias (16x box
+//! downscale, lit blocks) with its noise floor, TTUV of the high buffer (mean
+//! variance of the pixel estimate over lit pixels times render seconds) and the
+//! speedup against BDPT's high buffer, and the TTUV of the full image against path
+//! tracing's. Renders are cached under OUT/cache (a rerun resumes), Ctrl-C stops.
+//! Writes OUT/p2p.md, OUT/p2p.csv and one image sheet per configuration
+//! (figures 6.8-6.9: reference high orders, prediction, error).
+
+use crate::cli::{init_threads, progress_bar, stop_on_ctrl_c};
+use crate::eval_cmd::{
+    Image, bias, false_colour, lit_mean, nonempty, read_image_npy, read_json, render_tracked, ttuv, write_json,
+};
+use crate::output::{ToneMap, write_bytes_atomically};
+use crate::scene::{PredictorCache, SceneFile};
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use engine::{Buffer, RenderControl, Scene};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+#[derive(Args, Debug, Clone)]
+pub struct EvalP2pArgs {
+    /// Lighting configurations.
+    #[arg(long, value_delimiter = ',', default_value = "backlit,frontlit")]
+    pub configs: Vec<String>,
+    /// Segments per subpath.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,3,4")]
+    pub k: Vec<u32>,
+    /// Image width and height in pixels.
+    #[arg(long, default_value_t = 128)]
+    pub size: u32,
+    /// Samples per pixel of the BDPT references and of path tracing (thesis: 16384).
+    #[arg(long, default_value_t = 1024)]
+    pub spp_ref: u32,
+    /// Samples per pixel of the predictions (thesis: 4096).
+    #[arg(long, default_value_t = 256)]
+    pub spp: u32,
+    /// Prediction probability p.
+    #[arg(long, default_value_t = 1.0)]
+    pub p: f32,
+    /// Distance threshold r.
+    #[arg(long, default_value_t = engine::bdpt::Prediction::DEFAULT_R)]
+    pub r: f32,
+    /// The cloud (a modeler preset).
+    #[arg(long, default_value = "scene-a")]
+    pub cloud: String,
+    /// Density grid resolution.
+    #[arg(long, default_value_t = 128)]
+    pub res: u32,
+    /// The single-cloud model (default: the shipped one).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// A model trained on all twelve clouds of the cloud set (`nimbus train p2p` on
+    /// `datagen p2p --cloud set-01` .. `set-12`), evaluated beside the single one.
+    #[arg(long)]
+    pub multi_model: Option<PathBuf>,
+    /// Output directory (tables, sheets and the render cache).
+    #[arg(long, default_value = "out/eval-p2p")]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Thesis table 6.2: bias of the single and multi models (backlit k = 1..4, frontlit
+/// k = 1..4).
+pub const THESIS_BIAS: [(&str, [f64; 4], [f64; 4]); 2] = [
+    ("single", [0.0021, 0.0010, 0.0007, 0.0007], [0.0080, 0.0045, 0.0031, 0.0021]),
+    ("multi", [0.0112, 0.0076, 0.0061, 0.0052], [0.0279, 0.0159, 0.0109, 0.0084]),
+];
+
+/// Thesis table 6.3: speedup against BDPT's high orders (backlit, frontlit).
+pub const THESIS_SPEEDUP: [(&str, [f64; 4], [f64; 4]); 2] =
+    [("single", [7.9, 8.9, 10.4, 11.3], [6.0, 7.4, 8.3, 9.3]), ("multi", [6.8, 8.3, 9.7, 10.5], [5.1, 6.6, 7.6, 8.6])];
+
+/// Thesis table 6.3: TTUV of full path tracing and of the single model's prediction
+/// at k = 1 (backlit, frontlit): the prediction was 69x and 91x slower.
+pub const THESIS_PT_VS_PRED: [(&str, f64, f64); 2] = [("backlit", 10.3, 706.0), ("frontlit", 78.3, 7099.8)];
+
+/// One cached render: its timing and the images it yields.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct RenderMeta {
+    seconds: f64,
+    spp: u32,
+}
+
+/// The figures of one (config, model, k) cell.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct P2pCell {
+    pub config: String,
+    pub model: String,
+    pub k: u32,
+    /// The thesis's bias: mean |reference - prediction| of the high orders, all pixels.
+    pub mae: f64,
+    /// CONVENTIONS.md bias, relative bias and relative noise floor.
+    pub bias: f64,
+    pub rel_bias: f64,
+    pub rel_noise_floor: f64,
+    pub ttuv_bdpt_high: f64,
+    pub ttuv_pred_high: f64,
+    pub speedup: f64,
+    pub ttuv_pt_full: f64,
+    pub ttuv_pred_full: f64,
+    /// TTUV of path tracing's full image / TTUV of the prediction's full image
+    /// (above 1: prediction wins).
+    pub vs_path_tracing: f64,
+    pub secs_ref: f64,
+    pub secs_pred: f64,
+}
+
+fn scene_file(args: &EvalP2pArgs, config: &str) -> Result<SceneFile> {
+    let text = format!(
+        "seed = 1\n[grid]\npreset = \"{}\"\nresolution = {}\n[medium]\nrho = 25.0\nalbedo = 0.99\nphase = \"isotropic\"\n\
+         [camera]\npreset = \"{config}\"\nwidth = {s}\nheight = {s}\n[render]\nintegrator = \"bdpt\"\np = {}\nr = {}\n",
+        args.cloud, args.res, args.p, args.r, s = args.size
+    );
+    let s = SceneFile::from_toml_str(&text, "point-to-point evaluation scene")?;
+    s.validate()?;
+    Ok(s)
+}
+
+fn path_hash(p: &Path) -> String {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    std::path::absolute(p).unwrap_or_else(|_| p.to_owned()).hash(&mut h);
+    format!("{:016x}", h.finish())
+}
+
+/// Renders (or reads from the cache) the buffers `bufs` of one configuration.
+#[allow(clippy::too_many_arguments)]
+fn cached(
+    cache: &Path,
+    key: &str,
+    file: &SceneFile,
+    scene: &Arc<Scene>,
+    predictors: &mut PredictorCache,
+    spp: u32,
+    bufs: &[Buffer],
+    control: &RenderControl,
+    on_pass: &dyn Fn(u32),
+) -> Result<(Vec<Image>, RenderMeta)> {
+    let (npy, json) = (cache.join(format!("{key}.npy")), cache.join(format!("{key}.json")));
+    let (w, h) = (file.camera.width, file.camera.height);
+    if let Some(meta) = read_json::<RenderMeta>(&json) {
+        if let Ok(layers) = read_image_npy(&npy, w, h, 2 * bufs.len()) {
+            on_pass(spp);
+            let imgs = layers.chunks_exact(2).map(|l| Image { w, h, mean: l[0].clone(), var: l[1].clone() }).collect();
+            return Ok((imgs, meta));
+        }
+    }
+    let setup = file.integrator_cached(scene, models::depth_field::DEFAULT_MAX_NODES, predictors)?;
+    if let Some(w) = setup.warning {
+        bail!("{key}: {w}");
+    }
+    let t = render_tracked(scene.clone(), setup.integrator, spp, control, None, false, on_pass)?;
+    let imgs: Vec<Image> = bufs.iter().map(|b| Image::from_film(&t.film, *b)).collect();
+    let layers: Vec<Vec<[f32; 3]>> = imgs.iter().flat_map(|i| [i.mean.clone(), i.var.clone()]).collect();
+    write_bytes_atomically(&npy, &crate::eval_cmd::image_npy(&layers, w, h))?;
+    let meta = RenderMeta { seconds: t.seconds, spp };
+    write_json(&json, &meta)?;
+    Ok((imgs, meta))
+}
+
+pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
+    let threads = init_threads(args.threads)?;
+    for c in &args.configs {
+        if !matches!(c.as_str(), "backlit" | "frontlit" | "toplit") {
+            bail!("--configs {c}: choose from backlit, frontlit, toplit");
+        }
+    }
+    if args.k.is_empty() || args.k.iter().any(|k| !(1..=16).contains(k)) {
+        bail!("--k {:?}: every k must lie in 1 ..= 16", args.k);
+    }
+    if args.spp < 2 || args.spp_ref < 2 || args.size == 0 {
+        bail!("--spp and --spp-ref must be at least 2 (variances need two samples), --size at least 1");
+    }
+    if modeler::preset(&args.cloud).is_none() {
+        bail!("--cloud {}: not a modeler preset ({})", args.cloud, modeler::PRESET_NAMES.join(", "));
+    }
+    let mut models: Vec<(String, Option<PathBuf>, String)> = vec![(
+        "single".into(),
+        args.model.clone(),
+        args.model.as_deref().map_or("shipped".into(), path_hash),
+    )];
+    if let Some(m) = &args.multi_model {
+        models.push(("multi".into(), Some(m.clone()), path_hash(m)));
+    }
+    // Fail early, naming the file, if a model does not load.
+    for (name, path, _) in &models {
+        match path {
+            Some(p) => {
+                models::p2p_train::P2pModel::load(p).map_err(|e| anyhow::anyhow!("{name} model: {e}"))?;
+            }
+            None => {
+                models::p2p_train::P2pModel::shipped().map_err(|e| anyhow::anyhow!("shipped model: {e}"))?;
+            }
+        }
+    }
+    let control = Arc::new(RenderControl::new());
+    stop_on_ctrl_c(&control);
+    let cache = args.out.join("cache");
+    std::fs::create_dir_all(&cache).with_context(|| format!("cannot create {}", cache.display()))?;
+    let per_config = args.spp_ref as u64 * (1 + args.k.len() as u64) + args.spp as u64 * (args.k.len() * models.len()) as u64;
+    let bar = progress_bar(per_config * args.configs.len() as u64, "spp", args.quiet);
+    eprintln!(
+        "point-to-point evaluation: {} at {}x{}, configs {:?}, k {:?}, {} spp references, {} spp predictions, {} threads",
+        args.cloud, args.size, args.size, args.configs, args.k, args.spp_ref, args.spp, threads
+    );
+    let mut cells = vec![];
+    let mut done = 0u64;
+    let sheets = args.out.join("sheets");
+    std::fs::create_dir_all(&sheets)?;
+    for config in &args.configs {
+        let base = scene_file(args, config)?;
+        let scene = Arc::new(base.build_scene(None)?);
+        let tag = format!("{}_{config}_{}_{}", args.cloud, args.size, args.res);
+        let mut caches: Vec<PredictorCache> = models.iter().map(|_| PredictorCache::default()).collect();
+        let mut none = PredictorCache::default();
+        let step = |n: u32, start: u64| bar.set_position(start + n as u64);
+        // Full transport by path tracing.
+        let mut pt = base.clone();
+        pt.render.integrator = "path".into();
+        pt.render.mode = "reference".into();
+        let start = done;
+        let (pt_img, pt_meta) = cached(
+            &cache,
+            &format!("{tag}_pt_full_spp{}", args.spp_ref),
+            &pt,
+            &scene,
+            &mut none,
+            args.spp_ref,
+            &[Buffer::Full],
+            &control,
+            &|n| step(n, start),
+        )?;
+        done += args.spp_ref as u64;
+        let ttuv_pt = ttuv(&pt_img[0].var, &nonempty(&pt_img[0].mean), pt_meta.seconds);
+        let mut rows = vec![];
+        for &k in &args.k {
+            let mut reference = base.clone();
+            reference.render.mode = "reference".into();
+            reference.k = 2 * k + 1;
+            let start = done;
+            let (ref_img, ref_meta) = cached(
+                &cache,
+                &format!("{tag}_bdpt_k{k}_spp{}", args.spp_ref),
+                &reference,
+                &scene,
+                &mut none,
+                args.spp_ref,
+                &[Buffer::High],
+                &control,
+                &|n| step(n, start),
+            )?;
+            done += args.spp_ref as u64;
+            let ref_high = &ref_img[0];
+            let mask = nonempty(&ref_high.mean);
+            let ttuv_ref = ttuv(&ref_high.var, &mask, ref_meta.seconds);
+            let mut row = vec![];
+            for (mi, (name, path, id)) in models.iter().enumerate() {
+                let mut pred = base.clone();
+                pred.render.mode = "predict".into();
+                pred.k = k;
+                pred.render.p2p_model = path.as_ref().map(|p| std::path::absolute(p).unwrap_or(p.clone()).display().to_string());
+                let start = done;
+                let (imgs, meta) = cached(
+                    &cache,
+                    &format!("{tag}_pred_{id}_k{k}_p{}_r{}_spp{}", args.p, args.r, args.spp),
+                    &pred,
+                    &scene,
+                    &mut caches[mi],
+                    args.spp,
+                    &[Buffer::High, Buffer::Full],
+                    &control,
+                    &|n| step(n, start),
+                )?;
+                done += args.spp as u64;
+                let (high, full) = (&imgs[0], &imgs[1]);
+                let mae = high.mean.iter().zip(&ref_high.mean).map(|(a, b)| {
+                    (0..3).map(|c| (a[c] as f64 - b[c] as f64).abs()).sum::<f64>() / 3.0
+                });
+                let mae = mae.sum::<f64>() / high.mean.len().max(1) as f64;
+                let (b, rb, floor) = bias(ref_high, high);
+                let ttuv_pred = ttuv(&high.var, &mask, meta.seconds);
+                let ttuv_pred_full = ttuv(&full.var, &nonempty(&pt_img[0].mean), meta.seconds);
+                let cell = P2pCell {
+                    config: config.clone(),
+                    model: name.clone(),
+                    k,
+                    mae,
+                    bias: b,
+                    rel_bias: rb,
+                    rel_noise_floor: floor,
+                    ttuv_bdpt_high: ttuv_ref,
+                    ttuv_pred_high: ttuv_pred,
+                    speedup: if ttuv_pred > 0.0 { ttuv_ref / ttuv_pred } else { f64::INFINITY },
+                    ttuv_pt_full: ttuv_pt,
+                    ttuv_pred_full,
+                    vs_path_tracing: if ttuv_pred_full > 0.0 { ttuv_pt / ttuv_pred_full } else { f64::INFINITY },
+                    secs_ref: ref_meta.seconds,
+                    secs_pred: meta.seconds,
+                };
+                if !args.quiet {
+                    bar.println(format!(
+                        "{config} {name} k {k}: bias {:.2e} (relative {:.1} %, floor {:.1} %), speedup vs BDPT high {:.2}x, vs path tracing {:.3}x",
+                        cell.mae,
+                        100.0 * rb,
+                        100.0 * floor,
+                        cell.speedup,
+                        cell.vs_path_tracing
+                    ));
+                }
+                row.push(high.mean.clone());
+                cells.push(cell);
+            }
+            rows.push((ref_high.mean.clone(), row));
+        }
+        write_sheet(&sheets.join(format!("{config}.png")), args.size, &rows)?;
+    }
+    bar.finish_and_clear();
+    write_reports(&args.out, &cells, args)?;
+    eprintln!("wrote {}", args.out.join("p2p.md").display());
+    Ok(cells)
+}
+
+/// One row per k: the reference high orders, then per model its prediction and the
+/// error |prediction - reference| in false colour (yellow = the row's mean lit
+/// reference value). Exposure per row puts the reference's lit mean at mid-grey.
+fn write_sheet(path: &Path, size: u32, rows: &[(Vec<[f32; 3]>, Vec<Vec<[f32; 3]>>)]) -> Result<()> {
+    let gap = 4u32;
+    let cols = rows.first().map_or(1, |r| 1 + 2 * r.1.len()) as u32;
+    let mut sheet =
+        image::RgbImage::from_pixel(cols * (size + gap), rows.len() as u32 * (size + gap), image::Rgb([40, 40, 40]));
+    let tone = ToneMap::Filmic;
+    for (r, (reference, preds)) in rows.iter().enumerate() {
+        let scale = lit_mean(reference).max(1e-12);
+        let exposure = (0.18 / scale as f32).log2();
+        let toned = |img: &[[f32; 3]]| img.iter().map(|p| p.map(|v| tone.apply(v, exposure))).collect::<Vec<[u8; 3]>>();
+        let mut tiles = vec![toned(reference)];
+        for pred in preds {
+            tiles.push(toned(pred));
+            tiles.push(
+                pred.iter()
+                    .zip(reference)
+                    .map(|(a, b)| {
+                        let e = (0..3).map(|c| (a[c] - b[c]).abs()).sum::<f32>() / 3.0;
+                        false_colour(e / scale as f32)
+                    })
+                    .collect(),
+            );
+        }
+        for (c, tile) in tiles.iter().enumerate() {
+            let (ox, oy) = (c as u32 * (size + gap), r as u32 * (size + gap));
+            for y in 0..size {
+                for x in 0..size {
+                    sheet.put_pixel(ox + x, oy + y, image::Rgb(tile[(y * size + x) as usize]));
+                }
+            }
+        }
+    }
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    sheet.write_to(&mut bytes, image::ImageFormat::Png)?;
+    write_bytes_atomically(path, &bytes.into_inner())?;
+    Ok(())
+}
+
+fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()> {
+    let mut csv = String::from(
+        "config,model,k,mae,bias,rel_bias,rel_noise_floor,ttuv_bdpt_high,ttuv_pred_high,speedup,ttuv_pt_full,ttuv_pred_full,vs_path_tracing,secs_ref,secs_pred\n",
+    );
+    for c in cells {
+        csv += &format!(
+            "{},{},{},{:.6e},{:.6e},{:.5},{:.5},{:.6e},{:.6e},{:.4},{:.6e},{:.6e},{:.5},{:.2},{:.2}\n",
+            c.config,
+            c.model,
+            c.k,
+            c.mae,
+            c.bias,
+            c.rel_bias,
+            c.rel_noise_floor,
+            c.ttuv_bdpt_high,
+            c.ttuv_pred_high,
+            c.speedup,
+            c.ttuv_pt_full,
+            c.ttuv_pred_full,
+            c.vs_path_tracing,
+            c.secs_ref,
+            c.secs_pred
+        );
+    }
+    write_bytes_atomically(&out.join("p2p.csv"), csv.as_bytes())?;
+    let thesis = |table: &[(&str, [f64; 4], [f64; 4])], model: &str, config: &str, k: u32| -> String {
+        let Some(row) = table.iter().find(|r| r.0 == model) else { return "-".into() };
+        let v = match config {
+            "backlit" => row.1,
+            "frontlit" => row.2,
+            _ => return "-".into(),
+        };
+        v.get(k as usize - 1).map_or("-".into(), |x| format!("{x}"))
+    };
+    let mut md = format!(
+        "# Point-to-point model: evaluation (thesis 6.5)\n\n{} at {}x{}, rho 25, albedo 0.99, isotropic; references {} spp \
+         (BDPT, split at 2k + 1), predictions {} spp, p {}, r {}.\n\n",
+        args.cloud, args.size, args.size, args.spp_ref, args.spp, args.p, args.r
+    );
+    md += "## Bias of the high orders (table 6.2)\n\nCell: Nimbus MAE (thesis's measure) / thesis; relative bias \
+           (CONVENTIONS.md, 16x downscale) with its noise floor.\n\n| config | model | k | MAE | thesis | relative bias | noise floor |\n|---|---|---|---|---|---|---|\n";
+    for c in cells {
+        md += &format!(
+            "| {} | {} | {} | {:.2e} | {} | {:.1} % | {:.1} % |\n",
+            c.config,
+            c.model,
+            c.k,
+            c.mae,
+            thesis(&THESIS_BIAS, &c.model, &c.config, c.k),
+            100.0 * c.rel_bias,
+            100.0 * c.rel_noise_floor
+        );
+    }
+    md += "\n## TTUV and speedup (table 6.3)\n\nSpeedup: TTUV of BDPT's high orders / TTUV of the predicted high orders. \
+           Against path tracing: TTUV of path-traced full transport / TTUV of the prediction's full image (below 1: \
+           path tracing wins).\n\n| config | model | k | TTUV BDPT high | TTUV predicted | speedup | thesis | vs path tracing |\n|---|---|---|---|---|---|---|---|\n";
+    for c in cells {
+        md += &format!(
+            "| {} | {} | {} | {:.3e} | {:.3e} | {:.2}x | {}x | {:.3}x |\n",
+            c.config,
+            c.model,
+            c.k,
+            c.ttuv_bdpt_high,
+            c.ttuv_pred_high,
+            c.speedup,
+            thesis(&THESIS_SPEEDUP, &c.model, &c.config, c.k),
+            c.vs_path_tracing
+        );
+    }
+    md += "\nThesis, against path tracing at k = 1 (single model): ";
+    md += &THESIS_PT_VS_PRED
+        .iter()
+        .map(|(c, pt, pred)| format!("{c} {:.3}x", pt / pred))
+        .collect::<Vec<_>>()
+        .join(", ");
+    md += ".\n";
+    write_bytes_atomically(&out.join("p2p.md"), md.as_bytes())?;
+    Ok(())
+}
