@@ -285,6 +285,26 @@ pub fn sample_transport(medium: &Medium, q: &P2pQuery, set: &P2pSettings, rng: &
     sum
 }
 
+/// The point-to-point estimator as a [`crate::TransportPredictor`]: one sample of T
+/// per query. Unbiased, so BDPT's prediction mode with it is exact; it is the
+/// thesis's own baseline for the speedup of table 6.3 (the same two k-segment
+/// subpaths, the transport between them "by the bidirectional path tracer used for
+/// the ground truth" instead of the network).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct EstimatedTransport {
+    pub settings: P2pSettings,
+}
+
+impl crate::predictor::TransportPredictor for EstimatedTransport {
+    fn predict(&self, medium: &Medium, q: &P2pQuery, rng: &mut Rng) -> f32 {
+        sample_transport(medium, q, &self.settings, rng)
+    }
+
+    fn name(&self) -> &str {
+        "point-to-point estimator (one sample)"
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

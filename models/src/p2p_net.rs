@@ -198,13 +198,16 @@ impl P2pNetwork {
             let (o, i) = w.as_tensor().dims2()?;
             Ok(Dense { inputs: i, outputs: o, w: w.as_tensor().flatten_all()?.to_vec1()?, b: b.as_tensor().to_vec1()? })
         };
-        let blocks = self.blocks.iter().map(|b| b.iter().map(conv).collect()).collect::<candle_core::Result<_>>()?;
+        let blocks: Vec<Vec<Dense>> =
+            self.blocks.iter().map(|b| b.iter().map(conv).collect()).collect::<candle_core::Result<_>>()?;
+        let widest = blocks.iter().flatten().map(|d| d.inputs.max(d.outputs)).max().unwrap_or(1);
         Ok(P2pEvaluator {
             residual: matches!(self.arch, P2pArch::Residual { .. }),
             slices: self.slices.clone(),
             n_inputs: self.n_inputs,
             blocks,
             out: conv(&self.out)?,
+            widest,
         })
     }
 
@@ -267,6 +270,8 @@ pub struct P2pEvaluator {
     n_inputs: usize,
     blocks: Vec<Vec<Dense>>,
     out: Dense,
+    /// The widest layer: the scratch size.
+    widest: usize,
 }
 
 /// Scratch space of [`P2pEvaluator`]: sized once, reused.
@@ -316,7 +321,7 @@ impl P2pEvaluator {
     }
 
     pub fn scratch(&self) -> P2pScratch {
-        let widest = self.blocks.iter().flatten().map(|d| d.inputs.max(d.outputs)).max().unwrap_or(1);
+        let widest = self.widest;
         P2pScratch { input: vec![0.0; widest], a: vec![0.0; widest], b: vec![0.0; widest], prev: vec![0.0; widest] }
     }
 
@@ -343,6 +348,11 @@ impl P2pEvaluator {
 
     #[inline(always)]
     fn forward_impl(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
+        // Scratch sized for another network (a thread's scratch outlives models of
+        // different widths): size it for this one, once.
+        if s.a.len() < self.widest {
+            *s = self.scratch();
+        }
         assert_eq!(x.len(), self.n_inputs, "feature row length");
         if s.a.is_empty() {
             *s = self.scratch();

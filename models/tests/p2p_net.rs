@@ -5,7 +5,7 @@
 use candle_core::{Device, Tensor};
 use engine::Rng;
 use models::density_features::P2pFeatures;
-use models::p2p_net::{P2pArch, P2pNetwork};
+use models::p2p_net::{P2pArch, P2pNetwork, P2pScratch};
 
 fn rows(n: usize, len: usize, rng: &mut Rng) -> Vec<f32> {
     (0..n * len).map(|_| 3.0 * rng.uniform()).collect()
@@ -15,7 +15,10 @@ fn rows(n: usize, len: usize, rng: &mut Rng) -> Vec<f32> {
 fn evaluator_matches_candle() {
     let spec = P2pFeatures::default();
     let mut rng = Rng::new(1, 0, 0);
-    for arch in [P2pArch::default(), P2pArch::Residual { width: 16, layers: 2 }, P2pArch::Mlp { hidden: vec![64, 32] }]
+    // Scratch that outlives one network and meets another (a render thread's does):
+    // the narrow residual network first, then the wide one, then the MLP.
+    let (mut shared, mut shared_batch) = (P2pScratch::default(), Default::default());
+    for arch in [P2pArch::Residual { width: 16, layers: 2 }, P2pArch::default(), P2pArch::Mlp { hidden: vec![400, 32] }]
     {
         let net = P2pNetwork::new(&spec, arch.clone(), 7, &Device::Cpu).unwrap();
         let x = rows(8, spec.len(), &mut rng);
@@ -35,8 +38,11 @@ fn evaluator_matches_candle() {
         eval.forward_batch(&x, &mut got, &mut batch);
         let mut tail = vec![0.0; 3];
         eval.forward_batch(&x[..3 * spec.len()], &mut tail, &mut batch);
+        let reused: Vec<f32> = x.chunks(spec.len()).map(|r| eval.forward(r, &mut shared)).collect();
+        let mut reused_batch = vec![0.0; 8];
+        eval.forward_batch(&x, &mut reused_batch, &mut shared_batch);
         for (i, w) in want.iter().enumerate() {
-            for g in [single[i], portable[i], got[i]].into_iter().chain(tail.get(i).copied()) {
+            for g in [single[i], portable[i], got[i], reused[i], reused_batch[i]].into_iter().chain(tail.get(i).copied()) {
                 assert!((g - w).abs() <= 1e-4 * (1.0 + w.abs()), "{arch:?} row {i}: {g} vs {w}");
             }
         }

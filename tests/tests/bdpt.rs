@@ -134,13 +134,7 @@ fn each_connection_strategy_converges_to_the_same_answer() {
 /// BDPT's prediction mode must be unbiased, so any error in the plumbing (the caps
 /// and weights of the low orders, the subpaths' throughputs, the one-segment term
 /// taken out of T, the extension below r, the 1/p) shows against the path tracer.
-struct ExactTransport;
-
-impl engine::TransportPredictor for ExactTransport {
-    fn predict(&self, medium: &engine::Medium, q: &engine::p2p::P2pQuery, rng: &mut Rng) -> f32 {
-        engine::p2p::sample_transport(medium, q, &Default::default(), rng)
-    }
-}
+use engine::p2p::EstimatedTransport as ExactTransport;
 
 /// A predictor 30 % too high: the test must see it.
 struct BiasedTransport;
@@ -153,7 +147,7 @@ impl engine::TransportPredictor for BiasedTransport {
 
 fn predicting(seed: u64, k: u32, r: f32, p: f32) -> Integrator {
     let settings = RenderSettings { seed, k, mode: engine::Mode::Predict { p }, ..Default::default() };
-    Integrator::bdpt_prediction(settings, Default::default(), std::sync::Arc::new(ExactTransport), r).unwrap()
+    Integrator::bdpt_prediction(settings, Default::default(), std::sync::Arc::new(ExactTransport::default()), r).unwrap()
 }
 
 /// BDPT's prediction mode (k segments per subpath: orders 1 ..= 2k by BDPT into low,
@@ -230,14 +224,14 @@ fn bdpt_settings_are_checked_and_results_repeat() {
     let pred = Integrator::new(RenderSettings { mode: engine::Mode::Predict { p: 0.5 }, ..Default::default() }, None);
     assert!(pred.is_err(), "prediction needs a predictor anyway");
     let pred_settings = RenderSettings { mode: engine::Mode::Predict { p: 0.5 }, k: 40, ..Default::default() };
-    let e = Integrator::bdpt_prediction(pred_settings, Default::default(), std::sync::Arc::new(ExactTransport), 0.08)
+    let e = Integrator::bdpt_prediction(pred_settings, Default::default(), std::sync::Arc::new(ExactTransport::default()), 0.08)
         .unwrap_err()
         .to_string();
     assert!(e.contains("segments"), "{e}");
     let e = Integrator::bdpt_prediction(
         RenderSettings::default(),
         Default::default(),
-        std::sync::Arc::new(ExactTransport),
+        std::sync::Arc::new(ExactTransport::default()),
         0.08,
     )
     .unwrap_err()

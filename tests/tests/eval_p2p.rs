@@ -23,6 +23,7 @@ fn args(out: PathBuf) -> EvalP2pArgs {
         res: 64,
         model: None,
         multi_model: Some(shipped()),
+        also: vec![],
         out,
         threads: None,
         quiet: true,
