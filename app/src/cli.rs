@@ -285,9 +285,7 @@ pub fn run(cli: Cli) -> Result<()> {
         #[cfg(feature = "gui")]
         Some(Command::Bench { which: BenchCommand::Memory(args) }) => bench_memory(args),
         Some(Command::Train { which }) => crate::train_cmd::train(which),
-        Some(Command::Eval { which: Some(EvalCommand::P2p(args)), .. }) => {
-            crate::eval_p2p::eval_p2p(&args).map(|_| ())
-        }
+        Some(Command::Eval { which: Some(EvalCommand::P2p(args)), .. }) => crate::eval_p2p::eval_p2p(&args).map(|_| ()),
         Some(Command::Eval { which: None, args }) => crate::eval_cmd::eval(&args).map(|_| ()),
     }
 }

@@ -140,7 +140,11 @@ fn scene_file(args: &EvalP2pArgs, config: &str) -> Result<SceneFile> {
     let text = format!(
         "seed = 1\n[grid]\npreset = \"{}\"\nresolution = {}\n[medium]\nrho = 25.0\nalbedo = 0.99\nphase = \"isotropic\"\n\
          [camera]\npreset = \"{config}\"\nwidth = {s}\nheight = {s}\n[render]\nintegrator = \"bdpt\"\np = {}\nr = {}\n",
-        args.cloud, args.res, args.p, args.r, s = args.size
+        args.cloud,
+        args.res,
+        args.p,
+        args.r,
+        s = args.size
     );
     let s = SceneFile::from_toml_str(&text, "point-to-point evaluation scene")?;
     s.validate()?;
@@ -209,11 +213,8 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
     if modeler::preset(&args.cloud).is_none() {
         bail!("--cloud {}: not a modeler preset ({})", args.cloud, modeler::PRESET_NAMES.join(", "));
     }
-    let mut models: Vec<(String, Option<PathBuf>, String)> = vec![(
-        "single".into(),
-        args.model.clone(),
-        args.model.as_deref().map_or("shipped".into(), path_hash),
-    )];
+    let mut models: Vec<(String, Option<PathBuf>, String)> =
+        vec![("single".into(), args.model.clone(), args.model.as_deref().map_or("shipped".into(), path_hash))];
     if let Some(m) = &args.multi_model {
         models.push(("multi".into(), Some(m.clone()), path_hash(m)));
     }
@@ -314,7 +315,8 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
             let ttuv_base = ttuv(&base_img[0].var, &mask, base_meta.seconds);
             let mut row = vec![];
             for (mi, (name, path, id)) in models.iter().enumerate() {
-                pred.render.p2p_model = path.as_ref().map(|p| std::path::absolute(p).unwrap_or(p.clone()).display().to_string());
+                pred.render.p2p_model =
+                    path.as_ref().map(|p| std::path::absolute(p).unwrap_or(p.clone()).display().to_string());
                 let start = done;
                 let (imgs, meta) = cached(
                     &cache,
@@ -328,9 +330,11 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                 )?;
                 done += args.spp as u64;
                 let (high, full) = (&imgs[0], &imgs[1]);
-                let mae = high.mean.iter().zip(&ref_high.mean).map(|(a, b)| {
-                    (0..3).map(|c| (a[c] as f64 - b[c] as f64).abs()).sum::<f64>() / 3.0
-                });
+                let mae = high
+                    .mean
+                    .iter()
+                    .zip(&ref_high.mean)
+                    .map(|(a, b)| (0..3).map(|c| (a[c] as f64 - b[c] as f64).abs()).sum::<f64>() / 3.0);
                 let mae = mae.sum::<f64>() / high.mean.len().max(1) as f64;
                 let (b, rb, floor) = bias(ref_high, high);
                 let ttuv_pred = ttuv(&high.var, &mask, meta.seconds);
@@ -502,11 +506,8 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
         );
     }
     md += "\nThesis, against path tracing at k = 1 (single model): ";
-    md += &THESIS_PT_VS_PRED
-        .iter()
-        .map(|(c, pt, pred)| format!("{c} {:.3}x", pt / pred))
-        .collect::<Vec<_>>()
-        .join(", ");
+    md +=
+        &THESIS_PT_VS_PRED.iter().map(|(c, pt, pred)| format!("{c} {:.3}x", pt / pred)).collect::<Vec<_>>().join(", ");
     md += ".\n";
     write_bytes_atomically(&out.join("p2p.md"), md.as_bytes())?;
     Ok(())

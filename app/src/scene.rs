@@ -618,7 +618,8 @@ impl SceneFile {
         if scene.sun.is_none() {
             return Err(SceneError::Invalid("prediction mode needs a sun".into()));
         }
-        let key = PredictorKey { sun: [0; 3], nodes: 0, model: self.p2p_model_path(), ..PredictorKey::new(self, scene, 0) };
+        let key =
+            PredictorKey { sun: [0; 3], nodes: 0, model: self.p2p_model_path(), ..PredictorKey::new(self, scene, 0) };
         let bound = match &cache.p2p {
             Some((k, bound)) if *k == key => bound.clone(),
             _ => match self.load_p2p_model() {
@@ -640,7 +641,8 @@ impl SceneFile {
             },
         };
         let warning = bound.mismatch(&scene.medium);
-        let integrator = Integrator::bdpt_prediction(self.settings(), Default::default(), bound, self.render.r).map_err(err)?;
+        let integrator =
+            Integrator::bdpt_prediction(self.settings(), Default::default(), bound, self.render.r).map_err(err)?;
         Ok(IntegratorSetup { integrator, warning })
     }
 }

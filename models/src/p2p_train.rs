@@ -190,7 +190,8 @@ pub struct BoundP2pModel {
 impl BoundP2pModel {
     pub fn new(model: std::sync::Arc<P2pModel>, medium: &engine::Medium) -> Self {
         let grid = medium.grid();
-        let pyramid = crate::density_features::pyramid_for(grid, &model.sidecar.features, grid.bounds().extent().length());
+        let pyramid =
+            crate::density_features::pyramid_for(grid, &model.sidecar.features, grid.bounds().extent().length());
         let name = format!("point-to-point model ({})", model.sidecar.arch.describe());
         BoundP2pModel { model, pyramid, rho: medium.rho(), name }
     }

@@ -42,7 +42,9 @@ fn evaluator_matches_candle() {
         let mut reused_batch = vec![0.0; 8];
         eval.forward_batch(&x, &mut reused_batch, &mut shared_batch);
         for (i, w) in want.iter().enumerate() {
-            for g in [single[i], portable[i], got[i], reused[i], reused_batch[i]].into_iter().chain(tail.get(i).copied()) {
+            for g in
+                [single[i], portable[i], got[i], reused[i], reused_batch[i]].into_iter().chain(tail.get(i).copied())
+            {
                 assert!((g - w).abs() <= 1e-4 * (1.0 + w.abs()), "{arch:?} row {i}: {g} vs {w}");
             }
         }

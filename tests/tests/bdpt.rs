@@ -147,7 +147,8 @@ impl engine::TransportPredictor for BiasedTransport {
 
 fn predicting(seed: u64, k: u32, r: f32, p: f32) -> Integrator {
     let settings = RenderSettings { seed, k, mode: engine::Mode::Predict { p }, ..Default::default() };
-    Integrator::bdpt_prediction(settings, Default::default(), std::sync::Arc::new(ExactTransport::default()), r).unwrap()
+    Integrator::bdpt_prediction(settings, Default::default(), std::sync::Arc::new(ExactTransport::default()), r)
+        .unwrap()
 }
 
 /// BDPT's prediction mode (k segments per subpath: orders 1 ..= 2k by BDPT into low,
@@ -224,9 +225,14 @@ fn bdpt_settings_are_checked_and_results_repeat() {
     let pred = Integrator::new(RenderSettings { mode: engine::Mode::Predict { p: 0.5 }, ..Default::default() }, None);
     assert!(pred.is_err(), "prediction needs a predictor anyway");
     let pred_settings = RenderSettings { mode: engine::Mode::Predict { p: 0.5 }, k: 40, ..Default::default() };
-    let e = Integrator::bdpt_prediction(pred_settings, Default::default(), std::sync::Arc::new(ExactTransport::default()), 0.08)
-        .unwrap_err()
-        .to_string();
+    let e = Integrator::bdpt_prediction(
+        pred_settings,
+        Default::default(),
+        std::sync::Arc::new(ExactTransport::default()),
+        0.08,
+    )
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("segments"), "{e}");
     let e = Integrator::bdpt_prediction(
         RenderSettings::default(),

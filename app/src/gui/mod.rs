@@ -658,19 +658,23 @@ impl NimbusApp {
             ui.horizontal(|ui| {
                 ui.label("algorithm");
                 ui.selectable_value(&mut self.scene.render.integrator, "path".to_string(), "unidirectional");
-                ui.selectable_value(&mut self.scene.render.integrator, "bdpt".to_string(), "bidirectional").on_hover_text(
-                    "volumetric BDPT: light subpaths from the sun joined to camera subpaths, with MIS; with \
+                ui.selectable_value(&mut self.scene.render.integrator, "bdpt".to_string(), "bidirectional")
+                    .on_hover_text(
+                        "volumetric BDPT: light subpaths from the sun joined to camera subpaths, with MIS; with \
                      prediction, the point-to-point model predicts the transport between k-segment subpaths",
-                );
+                    );
             });
             let p2p = self.scene.render.mode == "predict" && self.scene.render.integrator == "bdpt";
-            let k_label = if p2p { "k (segments per subpath; high = orders 2k+1 and up)" } else { "k (first high order)" };
+            let k_label =
+                if p2p { "k (segments per subpath; high = orders 2k+1 and up)" } else { "k (first high order)" };
             ui.add(egui::Slider::new(&mut self.scene.k, 1..=8).text(k_label));
             if self.scene.render.mode == "predict" {
                 ui.add(egui::Slider::new(&mut self.scene.render.p, 0.05..=1.0).text("prediction probability p"));
                 if p2p {
                     ui.add(egui::Slider::new(&mut self.scene.render.r, 0.0..=0.3).text("distance threshold r"))
-                        .on_hover_text("end vertices closer than r are joined by extending the subpaths, not predicted");
+                        .on_hover_text(
+                            "end vertices closer than r are joined by extending the subpaths, not predicted",
+                        );
                 }
                 ui.checkbox(&mut self.compare, "compare with path tracing")
                     .on_hover_text("reference and prediction side by side, with the low, high and error buffers");
