@@ -111,6 +111,39 @@ fn compare_panel_shows_the_bias() {
 }
 
 /// Presses `button` at `from`, moves to `to` in steps and releases, as a mouse would.
+/// BDPT with the point-to-point model: the window switches to it with the shipped
+/// model and no file, shows r and the model, warns that the default medium (albedo 1,
+/// g 0.85) is outside the model's training, and compares against BDPT split at 2k + 1.
+#[test]
+fn bdpt_prediction_in_the_window() {
+    let mut h = harness();
+    let mut s = h.state().scene().clone();
+    (s.camera.width, s.camera.height, s.grid.resolution) = (24, 24, 24);
+    s.render.mode = "predict".into();
+    s.render.integrator = "bdpt".into();
+    h.state_mut().set_scene(s);
+    let start = std::time::Instant::now();
+    while !matches!(h.state().rendered_mode(), Some(engine::Mode::Predict { .. })) {
+        assert!(start.elapsed().as_secs() < 120, "no image in BDPT prediction mode");
+        h.run_steps(1);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    h.run_steps(2);
+    h.get_by_label("model: shipped point-to-point model");
+    assert!(h.query_all_by_label("distance threshold r").next().is_some(), "no r slider");
+    let text = h.state().worker_message().expect("the medium warning");
+    assert!(text.contains("trained for albedo"), "{text}");
+    h.state_mut().set_compare(true);
+    let start = std::time::Instant::now();
+    while h.state().compare_bias().is_none() {
+        assert!(start.elapsed().as_secs() < 120, "no comparison appeared");
+        h.run_steps(1);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let (rel, floor) = h.state().compare_bias().unwrap();
+    assert!(rel.is_finite() && floor > 0.0, "{rel} {floor}");
+}
+
 fn drag(h: &mut Harness<'static, NimbusApp>, from: egui::Pos2, to: egui::Pos2, button: egui::PointerButton) {
     let press = |pos, pressed| egui::Event::PointerButton { pos, button, pressed, modifiers: egui::Modifiers::NONE };
     h.hover_at(from);
