@@ -724,6 +724,13 @@ mod tests {
         assert!(setup.integrator.transport_prediction().is_none());
         let warn = setup.warning.unwrap();
         assert!(warn.contains("p2p-model.json") || warn.contains("p2p-model.safetensors"), "{warn}");
+        // The MLP model beside the shipped one loads from its file.
+        let mut mlp = s.clone();
+        mlp.render.p2p_model =
+            Some(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/p2p_mlp.safetensors").to_string());
+        let setup = mlp.integrator(&scene, 16).unwrap();
+        assert!(setup.warning.is_none(), "{:?}", setup.warning);
+        assert!(setup.integrator.transport_prediction().unwrap().predictor.name().contains("MLP"));
         let mut bad = s.clone();
         bad.render.r = -1.0;
         assert!(bad.validate().unwrap_err().to_string().contains("render.r"));

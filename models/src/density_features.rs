@@ -60,6 +60,19 @@ impl Level {
         let f = u.floor();
         let t = u - f;
         let (x, y, z) = (f.x as i64, f.y as i64, f.z as i64);
+        let [nx, ny, nz] = self.dims;
+        if x >= 0 && y >= 0 && z >= 0 && x + 1 < nx as i64 && y + 1 < ny as i64 && z + 1 < nz as i64 {
+            // The whole 2x2x2 cell inside: one index, no per-voxel checks.
+            let (sy, sz) = (nx, nx * ny);
+            let i = x as usize + nx * (y as usize + ny * z as usize);
+            let d = &self.data[i..i + sz + sy + 2];
+            let lerp = |a: f32, b: f32, w: f32| a + (b - a) * w;
+            let c00 = lerp(d[0], d[1], t.x);
+            let c10 = lerp(d[sy], d[sy + 1], t.x);
+            let c01 = lerp(d[sz], d[sz + 1], t.x);
+            let c11 = lerp(d[sz + sy], d[sz + sy + 1], t.x);
+            return lerp(lerp(c00, c10, t.y), lerp(c01, c11, t.y), t.z);
+        }
         let mut v = 0.0;
         for dz in 0..2 {
             let wz = if dz == 0 { 1.0 - t.z } else { t.z };
@@ -135,6 +148,14 @@ fn resample_axis(
         }
     }
     (out, out_dims)
+}
+
+/// Which pyramid levels a filter width reads, and how they blend.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LevelBlend {
+    lo: usize,
+    hi: usize,
+    f: f32,
 }
 
 /// The Gaussian pyramid of a density grid (values in density units, before rho).
@@ -224,17 +245,34 @@ impl DensityPyramid {
     /// level read that level.
     #[inline]
     pub fn lookup(&self, p: Vec3, std: f32) -> f32 {
+        self.lookup_in(self.select(std), p)
+    }
+
+    /// The two levels and the blend weight of filter width `std` (computed once for
+    /// many lookups of one width).
+    #[inline]
+    pub fn select(&self, std: f32) -> LevelBlend {
         let i = self.stds.partition_point(|s| *s <= std);
         if i == 0 {
-            return self.levels[0].lookup(p);
+            return LevelBlend { lo: 0, hi: 0, f: 0.0 };
         }
-        if i >= self.levels.len() {
-            return self.levels[self.levels.len() - 1].lookup(p);
+        let last = self.levels.len() - 1;
+        if i > last {
+            return LevelBlend { lo: last, hi: last, f: 0.0 };
         }
         let (a, b) = (self.stds[i - 1], self.stds[i]);
         // Variance-matched blend: (1 - f) a^2 + f b^2 = std^2.
         let f = ((std * std - a * a) / (b * b - a * a)).clamp(0.0, 1.0);
-        (1.0 - f) * self.levels[i - 1].lookup(p) + f * self.levels[i].lookup(p)
+        LevelBlend { lo: i - 1, hi: i, f }
+    }
+
+    /// The filtered density at `p` for a width chosen by [`DensityPyramid::select`].
+    #[inline]
+    pub fn lookup_in(&self, sel: LevelBlend, p: Vec3) -> f32 {
+        if sel.lo == sel.hi {
+            return self.levels[sel.lo].lookup(p);
+        }
+        (1.0 - sel.f) * self.levels[sel.lo].lookup(p) + sel.f * self.levels[sel.hi].lookup(p)
     }
 }
 
@@ -349,12 +387,13 @@ impl P2pFeatures {
         let mut level = |origin: Vec3, n: u32, l: i32, out: &mut [f32]| {
             let extent = 2f32.powi(l);
             let std_local = extent / (n.max(2) - 1) as f32;
+            let sel = pyramid.select(std_local * scale);
             for a in 0..n {
                 for b in 0..n {
                     for c in 0..n {
                         let g = |k: u32| if n == 1 { 0.0 } else { 2.0 * k as f32 / (n - 1) as f32 - 1.0 };
                         let q = origin + extent * Vec3::new(g(a), g(b), g(c));
-                        out[i] = scale * rho * pyramid.lookup(frame.to_world(q), std_local * scale);
+                        out[i] = scale * rho * pyramid.lookup_in(sel, frame.to_world(q));
                         i += 1;
                     }
                 }
@@ -395,4 +434,48 @@ pub fn diffusion_fluence(sigma_t: f32, albedo: f32, r: f32) -> f32 {
 /// reach `max_distance` (world units).
 pub fn pyramid_for(grid: &DensityGrid, spec: &P2pFeatures, max_distance: f32) -> DensityPyramid {
     DensityPyramid::new(grid, spec.max_local_std() * max_distance)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The interior fast path of the trilinear lookup and the checked one give the
+    /// same values, inside, on the border cells and outside the level.
+    #[test]
+    fn fast_trilinear_matches_the_checked_one() {
+        let dims = [5usize, 4, 6];
+        let data: Vec<f32> = (0..dims[0] * dims[1] * dims[2]).map(|i| ((i * 37) % 11) as f32 + 0.25).collect();
+        let level = Level { origin: Vec3::new(-0.3, 0.1, 0.2), h: Vec3::new(0.5, 0.25, 0.4), dims, data };
+        let checked = |p: Vec3| {
+            let u = (p - level.origin) / level.h - 0.5;
+            let f = u.floor();
+            let t = u - f;
+            let (x, y, z) = (f.x as i64, f.y as i64, f.z as i64);
+            let mut v = 0.0;
+            for (dz, wz) in [(0, 1.0 - t.z), (1, t.z)] {
+                for (dy, wy) in [(0, 1.0 - t.y), (1, t.y)] {
+                    for (dx, wx) in [(0, 1.0 - t.x), (1, t.x)] {
+                        v += wx * wy * wz * level.at(x + dx, y + dy, z + dz);
+                    }
+                }
+            }
+            v
+        };
+        let mut rng = engine::Rng::new(3, 0, 0);
+        let (mut inside, mut border) = (0, 0);
+        for _ in 0..20_000 {
+            let u = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 1.4 - 0.2;
+            let p = level.origin + u * level.h * Vec3::new(5.0, 4.0, 6.0);
+            let (a, b) = (level.lookup(p), checked(p));
+            assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{p}: {a} vs {b}");
+            let q = (p - level.origin) / level.h - 0.5;
+            if q.cmpge(Vec3::ZERO).all() && (q + 1.0).cmplt(Vec3::new(5.0, 4.0, 6.0)).all() {
+                inside += 1
+            } else {
+                border += 1
+            }
+        }
+        assert!(inside > 1000 && border > 1000, "{inside} {border}");
+    }
 }
