@@ -604,9 +604,7 @@ pub fn false_colour(t: f32) -> [u8; 3] {
 /// thesis's figure 5.9.
 fn write_sheet(path: &Path, reference: &Image, cache: &Path, key: &str, args: &EvalArgs) -> Result<()> {
     let (w, h) = (reference.w, reference.h);
-    let gap = 4u32;
-    let mut sheet =
-        image::RgbImage::from_pixel(6 * w + 5 * gap, args.k.len() as u32 * (h + gap), image::Rgb([40, 40, 40]));
+    let mut sheet = TileSheet::new(w, h, 6, args.k.len() as u32);
     let tone = ToneMap::Filmic;
     for (row, &k) in args.k.iter().enumerate() {
         let cell_npy = cache.join(format!("{}.npy", cell_key(key, k, args)));
@@ -624,18 +622,44 @@ fn write_sheet(path: &Path, reference: &Image, cache: &Path, key: &str, args: &E
             .collect();
         let tiles = [toned(&reference.mean), toned(full), toned(low), toned(&ref_high), toned(high), error];
         for (col, tile) in tiles.iter().enumerate() {
-            let (ox, oy) = (col as u32 * (w + gap), row as u32 * (h + gap));
-            for y in 0..h {
-                for x in 0..w {
-                    sheet.put_pixel(ox + x, oy + y, image::Rgb(tile[(y * w + x) as usize]));
-                }
+            sheet.put(col as u32, row as u32, tile);
+        }
+    }
+    sheet.save(path)
+}
+
+/// A grid of equally sized image tiles on a dark ground, 4 px apart.
+pub(crate) struct TileSheet {
+    image: image::RgbImage,
+    w: u32,
+    h: u32,
+}
+
+impl TileSheet {
+    const GAP: u32 = 4;
+
+    pub(crate) fn new(w: u32, h: u32, cols: u32, rows: u32) -> Self {
+        let (sw, sh) = (cols * (w + Self::GAP) - Self::GAP, rows * (h + Self::GAP));
+        TileSheet { image: image::RgbImage::from_pixel(sw.max(1), sh.max(1), image::Rgb([40, 40, 40])), w, h }
+    }
+
+    /// Puts a w x h tile (row-major pixels) at column `col`, row `row`.
+    pub(crate) fn put(&mut self, col: u32, row: u32, tile: &[[u8; 3]]) {
+        let (ox, oy) = (col * (self.w + Self::GAP), row * (self.h + Self::GAP));
+        for y in 0..self.h {
+            for x in 0..self.w {
+                self.image.put_pixel(ox + x, oy + y, image::Rgb(tile[(y * self.w + x) as usize]));
             }
         }
     }
-    let mut bytes = std::io::Cursor::new(Vec::new());
-    sheet.write_to(&mut bytes, image::ImageFormat::Png)?;
-    write_bytes_atomically(path, &bytes.into_inner())?;
-    Ok(())
+
+    /// Writes the sheet as a PNG, atomically.
+    pub(crate) fn save(&self, path: &Path) -> Result<()> {
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        self.image.write_to(&mut bytes, image::ImageFormat::Png)?;
+        write_bytes_atomically(path, &bytes.into_inner())?;
+        Ok(())
+    }
 }
 
 fn fmt_opt(v: Option<f64>) -> String {

@@ -22,7 +22,8 @@
 
 use crate::cli::{init_threads, progress_bar, stop_on_ctrl_c};
 use crate::eval_cmd::{
-    Image, bias, false_colour, lit_mean, nonempty, read_image_npy, read_json, render_tracked, ttuv, write_json,
+    Image, TileSheet, bias, false_colour, lit_mean, nonempty, read_image_npy, read_json, render_tracked, ttuv,
+    write_json,
 };
 use crate::output::{ToneMap, write_bytes_atomically};
 use crate::scene::{PredictorCache, SceneFile};
@@ -387,10 +388,8 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
 /// error |prediction - reference| in false colour (yellow = the row's mean lit
 /// reference value). Exposure per row puts the reference's lit mean at mid-grey.
 fn write_sheet(path: &Path, size: u32, rows: &[(Vec<[f32; 3]>, Vec<Vec<[f32; 3]>>)]) -> Result<()> {
-    let gap = 4u32;
     let cols = rows.first().map_or(1, |r| 1 + 2 * r.1.len()) as u32;
-    let mut sheet =
-        image::RgbImage::from_pixel(cols * (size + gap), rows.len() as u32 * (size + gap), image::Rgb([40, 40, 40]));
+    let mut sheet = TileSheet::new(size, size, cols, rows.len() as u32);
     let tone = ToneMap::Filmic;
     for (r, (reference, preds)) in rows.iter().enumerate() {
         let scale = lit_mean(reference).max(1e-12);
@@ -410,18 +409,10 @@ fn write_sheet(path: &Path, size: u32, rows: &[(Vec<[f32; 3]>, Vec<Vec<[f32; 3]>
             );
         }
         for (c, tile) in tiles.iter().enumerate() {
-            let (ox, oy) = (c as u32 * (size + gap), r as u32 * (size + gap));
-            for y in 0..size {
-                for x in 0..size {
-                    sheet.put_pixel(ox + x, oy + y, image::Rgb(tile[(y * size + x) as usize]));
-                }
-            }
+            sheet.put(c as u32, r as u32, tile);
         }
     }
-    let mut bytes = std::io::Cursor::new(Vec::new());
-    sheet.write_to(&mut bytes, image::ImageFormat::Png)?;
-    write_bytes_atomically(path, &bytes.into_inner())?;
-    Ok(())
+    sheet.save(path)
 }
 
 fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()> {

@@ -526,7 +526,11 @@ impl SceneFile {
 
     /// Where `render.model` points (resolved against the scene file), if set.
     pub fn model_path(&self) -> Option<PathBuf> {
-        let m = self.render.model.as_ref()?;
+        self.resolve(self.render.model.as_ref()?)
+    }
+
+    /// A path written in the scene file, relative to the file's folder.
+    fn resolve(&self, m: &str) -> Option<PathBuf> {
         Some(match &self.base_dir {
             Some(dir) => dir.join(m),
             None => PathBuf::from(m),
@@ -594,11 +598,7 @@ impl SceneFile {
 impl SceneFile {
     /// Where `render.p2p_model` points (resolved against the scene file), if set.
     pub fn p2p_model_path(&self) -> Option<PathBuf> {
-        let m = self.render.p2p_model.as_ref()?;
-        Some(match &self.base_dir {
-            Some(dir) => dir.join(m),
-            None => PathBuf::from(m),
-        })
+        self.resolve(self.render.p2p_model.as_ref()?)
     }
 
     /// The point-to-point model: `render.p2p_model`, else the shipped one.

@@ -12,6 +12,17 @@ fn harness() -> Harness<'static, NimbusApp> {
     Harness::builder().with_size(egui::vec2(1200.0, 800.0)).build_eframe(|cc| NimbusApp::new(&cc.egui_ctx, None))
 }
 
+/// Steps the window until `done` holds (the worker renders on its own thread); fails
+/// after two minutes, saying what did not happen.
+fn step_until(h: &mut Harness<'static, NimbusApp>, what: &str, done: impl Fn(&NimbusApp) -> bool) {
+    let start = std::time::Instant::now();
+    while !done(h.state()) {
+        assert!(start.elapsed().as_secs() < 120, "{what}");
+        h.run_steps(1);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+}
+
 #[test]
 fn panels_edits_and_undo() {
     let mut h = harness();
@@ -37,12 +48,7 @@ fn panels_edits_and_undo() {
     // The worker accumulates, and a parameter change starts a new render of the new
     // scene (a darker medium gives a darker image: nothing of the old one is kept).
     let wait = |h: &mut Harness<'static, NimbusApp>, ok: &dyn Fn(Option<(u64, u32, f64)>) -> bool| {
-        let start = std::time::Instant::now();
-        while !ok(h.state().rendered()) {
-            assert!(start.elapsed().as_secs() < 120, "the worker did not render");
-            h.run_steps(1);
-            std::thread::sleep(std::time::Duration::from_millis(20));
-        }
+        step_until(h, "the worker did not render", |a| ok(a.rendered()));
     };
     let mut s = h.state().scene().clone();
     (s.camera.width, s.camera.height, s.grid.resolution) = (32, 24, 32);
@@ -77,19 +83,11 @@ fn compare_panel_shows_the_bias() {
     s.render.mode = "predict".into();
     h.state_mut().set_scene(s);
     // The mode switch reaches the integrator: the published image is a prediction.
-    let start = std::time::Instant::now();
-    while !matches!(h.state().rendered_mode(), Some(engine::Mode::Predict { .. })) {
-        assert!(start.elapsed().as_secs() < 120, "no image in prediction mode");
-        h.run_steps(1);
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
+    step_until(&mut h, "no image in prediction mode", |a| {
+        matches!(a.rendered_mode(), Some(engine::Mode::Predict { .. }))
+    });
     h.state_mut().set_compare(true);
-    let start = std::time::Instant::now();
-    while h.state().compare_bias().is_none() {
-        assert!(start.elapsed().as_secs() < 120, "no comparison appeared");
-        h.run_steps(1);
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
+    step_until(&mut h, "no comparison appeared", |a| a.compare_bias().is_some());
     h.run_steps(2);
     h.get_by_label("Compare");
     h.get_by_label("predicted high orders");
@@ -110,7 +108,6 @@ fn compare_panel_shows_the_bias() {
     assert_eq!(h.state().scene().camera.position, camera, "the wipe drag moved the camera");
 }
 
-/// Presses `button` at `from`, moves to `to` in steps and releases, as a mouse would.
 /// BDPT with the point-to-point model: the window switches to it with the shipped
 /// model and no file, shows r and the model, warns that the default medium (albedo 1,
 /// g 0.85) is outside the model's training, and compares against BDPT split at 2k + 1.
@@ -122,28 +119,21 @@ fn bdpt_prediction_in_the_window() {
     s.render.mode = "predict".into();
     s.render.integrator = "bdpt".into();
     h.state_mut().set_scene(s);
-    let start = std::time::Instant::now();
-    while !matches!(h.state().rendered_mode(), Some(engine::Mode::Predict { .. })) {
-        assert!(start.elapsed().as_secs() < 120, "no image in BDPT prediction mode");
-        h.run_steps(1);
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
+    step_until(&mut h, "no image in BDPT prediction mode", |a| {
+        matches!(a.rendered_mode(), Some(engine::Mode::Predict { .. }))
+    });
     h.run_steps(2);
     h.get_by_label("model: shipped point-to-point model");
     assert!(h.query_all_by_label("distance threshold r").next().is_some(), "no r slider");
     let text = h.state().worker_message().expect("the medium warning");
     assert!(text.contains("trained for albedo"), "{text}");
     h.state_mut().set_compare(true);
-    let start = std::time::Instant::now();
-    while h.state().compare_bias().is_none() {
-        assert!(start.elapsed().as_secs() < 120, "no comparison appeared");
-        h.run_steps(1);
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
+    step_until(&mut h, "no comparison appeared", |a| a.compare_bias().is_some());
     let (rel, floor) = h.state().compare_bias().unwrap();
     assert!(rel.is_finite() && floor > 0.0, "{rel} {floor}");
 }
 
+/// Presses `button` at `from`, moves to `to` in steps and releases, as a mouse would.
 fn drag(h: &mut Harness<'static, NimbusApp>, from: egui::Pos2, to: egui::Pos2, button: egui::PointerButton) {
     let press = |pos, pressed| egui::Event::PointerButton { pos, button, pressed, modifiers: egui::Modifiers::NONE };
     h.hover_at(from);
@@ -249,12 +239,7 @@ fn export_writes_files() {
     let mut s = h.state().scene().clone();
     (s.camera.width, s.camera.height, s.grid.resolution) = (24, 16, 24);
     h.state_mut().set_scene(s);
-    let start = std::time::Instant::now();
-    while h.state().rendered().is_none_or(|r| r.1 < 2) {
-        assert!(start.elapsed().as_secs() < 120, "the worker did not render");
-        h.run_steps(1);
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
+    step_until(&mut h, "the worker did not render", |a| a.rendered().is_some_and(|r| r.1 >= 2));
     for (target, name) in
         [(Target::Exr, "i.exr"), (Target::Png, "i.png"), (Target::Vdb, "c.vdb"), (Target::Scene, "s.toml")]
     {
