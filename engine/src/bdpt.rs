@@ -56,8 +56,8 @@
 //! [`crate::p2p`], which walks on from both end vertices. (The thesis dropped these
 //! pairs, a bias; extending keeps the estimate exact up to the network's error.) The
 //! high term is evaluated with probability p and weighted 1/p, as in the path tracer's
-//! prediction mode. Like that mode, prediction covers the sun: sky light that
-//! scatters more than k times on the camera side is not added.
+//! prediction mode. Like that mode, prediction covers the sun: sky light of orders above 2k
+//! (camera walks that escape after x_{2k}) is not added.
 
 use crate::integrator::{PathSample, RenderSettings, Scene, roulette};
 use crate::medium::FreeFlight;
