@@ -145,23 +145,12 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
             let spec = args.spec()?;
             let shard = Shard::parse(&args.shard)?;
             let threads = init_threads(args.threads)?;
-            let owned = spec.shard_points(shard);
-            eprintln!(
-                "data set: {} points ({} in shard {}/{}), {} threads, into {}",
-                spec.points,
-                owned,
-                shard.index,
-                shard.count,
-                threads,
-                args.out.display()
-            );
-            let bar = progress_bar(owned, "points", args.quiet);
-            let cancel = cancel_on_ctrl_c();
-            let t = std::time::Instant::now();
-            let m = datagen::generate(&spec, shard, &args.out, &code_version(), &|n| bar.set_position(n), &cancel)?;
-            bar.finish_and_clear();
-            report(m.complete, owned, t, &m.counts, &args.out);
-            Ok(())
+            let what = format!("data set: {} points", spec.points);
+            let run = Run { owned: spec.shard_points(shard), shard, threads, out: &args.out, quiet: args.quiet };
+            run.go(&what, |progress, cancel| {
+                let m = datagen::generate(&spec, shard, &args.out, &code_version(), progress, cancel)?;
+                Ok((m.complete, m.counts))
+            })
         }
         DatagenCommand::Merge(args) => {
             let first = args.shards.first().context("name the shard directories")?;
@@ -178,17 +167,48 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
     }
 }
 
-/// The closing line of a data-generation run.
-fn report(complete: bool, owned: u64, started: std::time::Instant, counts: &datagen::Counts, out: &std::path::Path) {
-    println!(
-        "{} {} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
-        if complete { "complete:" } else { "shard done:" },
-        owned,
-        started.elapsed().as_secs_f64(),
-        counts.seconds,
-        counts.path_samples,
-        out.display()
-    );
+/// One data-generation run: what it announces, its progress bar, Ctrl-C, and its
+/// closing line (both generators).
+struct Run<'a> {
+    owned: u64,
+    shard: Shard,
+    threads: usize,
+    out: &'a std::path::Path,
+    quiet: bool,
+}
+
+impl Run<'_> {
+    /// Runs `generate` (given the progress callback and the cancel flag; it returns
+    /// whether the data set is complete and the manifest's counts).
+    fn go(
+        &self,
+        what: &str,
+        generate: impl FnOnce(&(dyn Fn(u64) + Sync), &std::sync::atomic::AtomicBool) -> Result<(bool, datagen::Counts)>,
+    ) -> Result<()> {
+        eprintln!(
+            "{what} ({} points in shard {}/{}), {} threads, into {}",
+            self.owned,
+            self.shard.index,
+            self.shard.count,
+            self.threads,
+            self.out.display()
+        );
+        let bar = progress_bar(self.owned, "points", self.quiet);
+        let cancel = cancel_on_ctrl_c();
+        let started = std::time::Instant::now();
+        let (complete, counts) = generate(&|n| bar.set_position(n), &cancel)?;
+        bar.finish_and_clear();
+        println!(
+            "{} {} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
+            if complete { "complete:" } else { "shard done:" },
+            self.owned,
+            started.elapsed().as_secs_f64(),
+            counts.seconds,
+            counts.path_samples,
+            self.out.display()
+        );
+        Ok(())
+    }
 }
 
 /// The cloud of `nimbus datagen p2p --cloud`: a built-in cloud, a modeler preset or a
@@ -232,32 +252,12 @@ fn datagen_p2p(args: P2pArgs) -> Result<()> {
     let grid = Arc::new(cloud_grid(&args.cloud, args.resolution)?);
     let shard = Shard::parse(&args.shard)?;
     let threads = init_threads(args.threads)?;
-    let owned: u64 = (0..spec.n_chunks()).filter(|&c| shard.owns(c)).map(|c| spec.chunk_len(c)).sum();
-    eprintln!(
-        "point-to-point data set: {} points x {} rotations ({} points in shard {}/{}), {} threads, into {}",
-        spec.points,
-        spec.rotations,
-        owned,
-        shard.index,
-        shard.count,
-        threads,
-        args.out.display()
-    );
-    let bar = progress_bar(owned, "points", args.quiet);
-    let cancel = cancel_on_ctrl_c();
-    let t = std::time::Instant::now();
-    let m = models::p2p_datagen::generate(
-        &spec,
-        grid,
-        shard,
-        &args.out,
-        &code_version(),
-        &|n| bar.set_position(n),
-        &cancel,
-    )?;
-    bar.finish_and_clear();
-    report(m.complete, owned, t, &m.counts, &args.out);
-    Ok(())
+    let what = format!("point-to-point data set: {} points x {} rotations", spec.points, spec.rotations);
+    let run = Run { owned: spec.shard_points(shard), shard, threads, out: &args.out, quiet: args.quiet };
+    run.go(&what, |progress, cancel| {
+        let m = models::p2p_datagen::generate(&spec, grid, shard, &args.out, &code_version(), progress, cancel)?;
+        Ok((m.complete, m.counts))
+    })
 }
 
 /// `nimbus datagen p2p`: ground truth for the point-to-point model (thesis 6.3).

@@ -618,8 +618,7 @@ impl SceneFile {
         if scene.sun.is_none() {
             return Err(SceneError::Invalid("prediction mode needs a sun".into()));
         }
-        let key =
-            PredictorKey { sun: [0; 3], nodes: 0, model: self.p2p_model_path(), ..PredictorKey::new(self, scene, 0) };
+        let key = PredictorKey::p2p(self, scene);
         let bound = match &cache.p2p {
             Some((k, bound)) if *k == key => bound.clone(),
             _ => match self.load_p2p_model() {
@@ -666,6 +665,11 @@ pub struct PredictorCache {
 }
 
 impl PredictorKey {
+    /// A point-to-point model depends on the cloud, rho and the model file only.
+    fn p2p(file: &SceneFile, scene: &Scene) -> Self {
+        PredictorKey { sun: [0; 3], nodes: 0, model: file.p2p_model_path(), ..PredictorKey::new(file, scene, 0) }
+    }
+
     fn new(file: &SceneFile, scene: &Scene, nodes: u32) -> Self {
         PredictorKey {
             grid: Arc::as_ptr(scene.medium.grid()) as usize,

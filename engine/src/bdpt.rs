@@ -431,7 +431,10 @@ pub fn trace_strategies(
                     }
                     let dist = dist2.sqrt();
                     let dir = dv / dist;
-                    let f = beta * phase.eval(wo, dir) * phase.eval(y.wo, -dir) * y.beta * lp.area / dist2;
+                    // The segment's phase and geometry terms: T's one-segment term
+                    // without the transmittance.
+                    let segment = phase.eval(wo, dir) * phase.eval(y.wo, -dir) / dist2;
+                    let f = beta * segment * y.beta * lp.area;
                     if !(f > 0.0 && f.is_finite()) {
                         continue;
                     }
@@ -440,7 +443,7 @@ pub fn trace_strategies(
                         continue;
                     }
                     if prediction.is_some_and(|pr| order == pr.segments && j == lp.len) {
-                        t1 = phase.eval(wo, dir) * phase.eval(y.wo, -dir) / dist2 * tr;
+                        t1 = segment * tr;
                     }
                     let view = PathView { cam: &cam, light: Some(lp), c, n, to_sun: -lp.beam };
                     let weight = mis_weight(&view, phase, lp.area, b, max_depth);

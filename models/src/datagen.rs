@@ -212,7 +212,7 @@ impl GlobalSpec {
     }
 
     pub fn n_chunks(&self) -> u64 {
-        self.points.div_ceil(self.chunk_size)
+        chunk_count(self.points, self.chunk_size)
     }
 
     pub fn stopping(&self) -> Stopping {
@@ -231,13 +231,28 @@ impl GlobalSpec {
 
     /// Points in chunk `c` (the last chunk may be short).
     pub fn chunk_len(&self, c: u64) -> u64 {
-        (self.points - c * self.chunk_size).min(self.chunk_size)
+        chunk_len(self.points, self.chunk_size, c)
     }
 
     /// Points that `shard` makes.
     pub fn shard_points(&self, shard: Shard) -> u64 {
-        (0..self.n_chunks()).filter(|&c| shard.owns(c)).map(|c| self.chunk_len(c)).sum()
+        shard_points(self.points, self.chunk_size, shard)
     }
+}
+
+/// Chunks of `chunk_size` points that hold `points` (both data generators).
+pub fn chunk_count(points: u64, chunk_size: u64) -> u64 {
+    points.div_ceil(chunk_size)
+}
+
+/// Points in chunk `c` (the last chunk may be short).
+pub fn chunk_len(points: u64, chunk_size: u64, c: u64) -> u64 {
+    (points - c * chunk_size).min(chunk_size)
+}
+
+/// Points that `shard` makes (it owns chunks c with c mod N == i).
+pub fn shard_points(points: u64, chunk_size: u64, shard: Shard) -> u64 {
+    (0..chunk_count(points, chunk_size)).filter(|&c| shard.owns(c)).map(|c| chunk_len(points, chunk_size, c)).sum()
 }
 
 /// One data point.

@@ -98,10 +98,14 @@ impl P2pSpec {
         Ok(())
     }
     pub fn n_chunks(&self) -> u64 {
-        self.points.div_ceil(self.chunk_size)
+        crate::datagen::chunk_count(self.points, self.chunk_size)
     }
     pub fn chunk_len(&self, c: u64) -> u64 {
-        (self.points - c * self.chunk_size).min(self.chunk_size)
+        crate::datagen::chunk_len(self.points, self.chunk_size, c)
+    }
+    /// Points that `shard` makes.
+    pub fn shard_points(&self, shard: Shard) -> u64 {
+        crate::datagen::shard_points(self.points, self.chunk_size, shard)
     }
     pub fn rows(&self) -> u64 {
         self.points * self.rotations as u64
