@@ -73,9 +73,14 @@ pub struct EvalArgs {
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Also measure path tracing's time to preview (a second path-traced run per
-    /// configuration, until 5 % relative RMSE or spp-ref / 2 samples).
+    /// configuration, another seed, until 5 % relative RMSE against the reference, its
+    /// own noise subtracted, or --preview-spp samples), and report every prediction's
+    /// RMSE floor and projected time to preview.
     #[arg(long)]
     pub preview: bool,
+    /// Sample cap of path tracing's preview run (default: 4 x spp-ref).
+    #[arg(long)]
+    pub preview_spp: Option<u32>,
     /// Output directory (tables, plots, sheets, and the render cache).
     #[arg(long, default_value = "out/eval")]
     pub out: PathBuf,
@@ -151,6 +156,29 @@ pub struct CellResult {
     pub secs_pilot: f64,
     pub preview_secs_pred: Option<f64>,
     pub preview_secs_ref: Option<f64>,
+    /// The prediction's relative RMSE once its noise is gone (its bias part; see
+    /// [`relative_rmse_less`]): at or above [`PREVIEW_RMSE`] it never previews.
+    #[serde(default)]
+    pub rmse_floor: Option<f64>,
+    /// Seconds to preview projected from TTUV and the floor (variance falls as 1/t):
+    /// TTUV / (mean^2 (0.05^2 - floor^2)); None when the floor is at or above 5 %.
+    #[serde(default)]
+    pub preview_projected_pred: Option<f64>,
+    /// The same projection for path tracing (floor 0: it is unbiased), a check on the
+    /// measured `preview_secs_ref`.
+    #[serde(default)]
+    pub preview_projected_ref: Option<f64>,
+    /// The reference's own relative noise ([`reference_noise`]).
+    #[serde(default)]
+    pub ref_noise: Option<f64>,
+}
+
+/// Seconds until the relative RMSE reaches [`PREVIEW_RMSE`] for an estimator whose
+/// variance of the mean is `ttuv / t` (mean over the lit pixels) and whose bias part
+/// is `floor` (relative), for an image of mean `mean`; None if the floor is too high.
+pub fn projected_preview(ttuv: f64, mean: f64, floor: f64) -> Option<f64> {
+    let room = PREVIEW_RMSE * PREVIEW_RMSE - floor * floor;
+    (room > 0.0 && mean > 0.0).then(|| ttuv / (mean * mean * room))
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -159,6 +187,9 @@ struct ReferenceMeta {
     seconds: f64,
     ttuv: f64,
     preview_secs: Option<f64>,
+    /// Whether the path-traced preview run was made (it may not have reached 5 %).
+    #[serde(default)]
+    preview_tried: bool,
 }
 
 /// An image with the per-pixel variance of its estimate.
@@ -182,6 +213,13 @@ fn avg3(v: &[f32; 3]) -> f64 {
 /// Pixels whose reference value is > 0.
 pub fn nonempty(reference: &[[f32; 3]]) -> Vec<bool> {
     reference.iter().map(|p| avg3(p) > 0.0).collect()
+}
+
+/// Mean over `mask` of the pixels' channel averages.
+pub fn masked_mean(img: &[[f32; 3]], mask: &[bool]) -> f64 {
+    let (s, n) =
+        img.iter().zip(mask).filter(|(_, m)| **m).fold((0.0f64, 0usize), |(s, n), (p, _)| (s + avg3(p), n + 1));
+    if n == 0 { 0.0 } else { s / n as f64 }
 }
 
 /// Mean of the pixels whose value (averaged over channels) is > 0.
@@ -258,22 +296,51 @@ pub fn bias(reference: &Image, pred: &Image) -> (f64, f64, f64) {
     (err, err / mean, floor / mean)
 }
 
-/// Relative RMSE of `img` against `reference` over `mask`: sqrt(mean squared error)
-/// divided by the mean reference value.
-pub fn relative_rmse(img: &[[f32; 3]], reference: &[[f32; 3]], mask: &[bool]) -> f64 {
+/// Relative RMSE of `img` against the converged image, measured with a reference that
+/// is itself noisy: sqrt(mean over `mask` of (img - ref)^2 - var(ref)) divided by the
+/// mean reference value. For an image independent of the reference,
+/// E[(img - ref)^2] = E[(img - truth)^2] + var(ref), so subtracting the reference's
+/// own variance of the mean (unbiased per pixel) leaves an unbiased estimate of the
+/// squared error against the truth: a reference about as converged as the preview
+/// itself is enough, where comparing against its mean alone needs one far below 5 %.
+/// Clamped at 0 (the estimate can dip below zero when both are nearly exact).
+pub fn relative_rmse(img: &[[f32; 3]], reference: &Image, mask: &[bool]) -> f64 {
+    relative_rmse_less(img, reference, mask, None)
+}
+
+/// [`relative_rmse`] with, optionally, the image's own variance of the mean also
+/// subtracted: what is left is the error no amount of samples removes, the bias part
+/// of the RMSE (the floor a biased estimator converges to).
+pub fn relative_rmse_less(img: &[[f32; 3]], reference: &Image, mask: &[bool], img_var: Option<&[[f32; 3]]>) -> f64 {
     let (mut se, mut r, mut n) = (0.0f64, 0.0f64, 0usize);
-    for ((a, b), m) in img.iter().zip(reference).zip(mask) {
+    for (i, m) in mask.iter().enumerate() {
         if *m {
+            let (a, b, v) = (&img[i], &reference.mean[i], &reference.var[i]);
             for c in 0..3 {
                 let d = a[c] as f64 - b[c] as f64;
-                se += d * d / 3.0;
+                let own = img_var.map_or(0.0, |iv| iv[i][c] as f64);
+                se += (d * d - v[c] as f64 - own) / 3.0;
             }
             r += avg3(b);
             n += 1;
         }
     }
     // No lit pixel: no preview can be judged.
-    if n == 0 || r <= 0.0 { f64::INFINITY } else { (se / n as f64).sqrt() / (r / n as f64) }
+    if n == 0 || r <= 0.0 { f64::INFINITY } else { (se / n as f64).max(0.0).sqrt() / (r / n as f64) }
+}
+
+/// The reference's own relative noise: sqrt(mean over `mask` of its variance of the
+/// mean) / its mean; the RMSE a comparison against its mean alone could not go below.
+pub fn reference_noise(reference: &Image, mask: &[bool]) -> f64 {
+    let (mut v, mut r, mut n) = (0.0f64, 0.0f64, 0usize);
+    for (i, m) in mask.iter().enumerate() {
+        if *m {
+            v += avg3(&reference.var[i]);
+            r += avg3(&reference.mean[i]);
+            n += 1;
+        }
+    }
+    if n == 0 || r <= 0.0 { f64::INFINITY } else { (v / n as f64).sqrt() / (r / n as f64) }
 }
 
 /// What a tracked render returns.
@@ -292,7 +359,7 @@ pub(crate) fn render_tracked(
     integrator: Integrator,
     spp: u32,
     control: &RenderControl,
-    reference: Option<(&[[f32; 3]], &[bool])>,
+    reference: Option<(&Image, &[bool])>,
     stop_at_preview: bool,
     mut on_pass: impl FnMut(u32),
 ) -> Result<Tracked> {
@@ -345,20 +412,20 @@ pub(crate) fn read_image_npy(path: &Path, w: u32, h: u32, n: usize) -> Result<Ve
     Ok(layers)
 }
 
-/// The cache name of one prediction cell: everything its numbers depend on (the model
-/// by a hash of its file path, or "shipped").
-fn cell_key(key: &str, k: u32, args: &EvalArgs) -> String {
+/// The render cache's name for a model: a fingerprint of its bytes (weights and
+/// sidecar), so a model retrained into the same file, or a new shipped one, never
+/// reuses old renders, and a file with the shipped bytes shares the shipped one's.
+fn model_id(args: &EvalArgs) -> Result<String> {
+    Ok(match &args.model {
+        Some(path) => format!("{:016x}", models::model_file_fingerprint(path)?),
+        None => format!("{:016x}", models::global::shipped_fingerprint()),
+    })
+}
+
+/// The cache name of one prediction cell: everything its numbers depend on.
+fn cell_key(key: &str, k: u32, args: &EvalArgs, model_id: &str) -> String {
     let p = if args.auto_p { "auto".to_string() } else { args.p.to_string() };
-    let model = match &args.model {
-        Some(path) => {
-            use std::hash::{Hash, Hasher};
-            let mut h = std::collections::hash_map::DefaultHasher::new();
-            std::path::absolute(path).unwrap_or_else(|_| path.clone()).hash(&mut h);
-            format!("{:016x}", h.finish())
-        }
-        None => "shipped".into(),
-    };
-    format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}_{model}", args.spp, args.spp_ref, args.field_nodes)
+    format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}_{model_id}", args.spp, args.spp_ref, args.field_nodes)
 }
 
 pub(crate) fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
@@ -406,6 +473,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         Some(p) => Arc::new(models::global::GlobalModel::load(p)?),
         None => models::global::GlobalModel::shipped()?,
     };
+    let model_id = model_id(args).context("--model")?;
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
     let cache = args.out.join("cache");
@@ -478,6 +546,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                     seconds: t.seconds,
                     ttuv: ttuv(&img.var, &mask, t.seconds),
                     preview_secs: None,
+                    preview_tried: false,
                 };
                 write_bytes_atomically(
                     &ref_npy,
@@ -488,17 +557,21 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             }
         };
         let mask = nonempty(&reference.mean);
-        if args.preview && meta.preview_secs.is_none() {
+        let ref_mean = masked_mean(&reference.mean, &mask);
+        let ref_noise = reference_noise(&reference, &mask);
+        if args.preview && !meta.preview_tried {
+            // The reference's own noise is subtracted (`relative_rmse`), so path tracing
+            // may need more samples than the reference has.
             let t = render_tracked(
                 scene.clone(),
                 path_traced(7)?,
-                (args.spp_ref / 2).max(1),
+                args.preview_spp.unwrap_or(args.spp_ref.saturating_mul(4)).max(1),
                 &control,
-                Some((&reference.mean, &mask)),
+                Some((&reference, &mask)),
                 true,
                 |_| {},
             )?;
-            meta.preview_secs = t.preview_secs;
+            (meta.preview_secs, meta.preview_tried) = (t.preview_secs, true);
             write_json(&ref_json, &meta)?;
         }
         // The model bound to this cloud and sun, built once for every k.
@@ -507,7 +580,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         for (ki, &k) in args.k.iter().enumerate() {
             let kbase = base + args.spp_ref as u64 + ki as u64 * args.spp as u64;
             bar.set_position(kbase);
-            let cell_key = cell_key(&key, k, args);
+            let cell_key = cell_key(&key, k, args, &model_id);
             let cell_json = cache.join(format!("{cell_key}.json"));
             let cell_npy = cache.join(format!("{cell_key}.npy"));
             if let (Some(cell), true) = (read_json::<CellResult>(&cell_json), cell_npy.exists()) {
@@ -536,18 +609,14 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             }
             let secs_pilot = if args.auto_p { t_pilot.elapsed().as_secs_f64() } else { 0.0 };
             let integrator = f.integrator_with(Some(pred))?;
-            let t = render_tracked(
-                scene.clone(),
-                integrator,
-                args.spp,
-                &control,
-                Some((&reference.mean, &mask)),
-                false,
-                |d| bar.set_position(kbase + d as u64),
-            )?;
+            let t =
+                render_tracked(scene.clone(), integrator, args.spp, &control, Some((&reference, &mask)), false, |d| {
+                    bar.set_position(kbase + d as u64)
+                })?;
             let full = Image::from_film(&t.film, Buffer::Full);
             let (b, rb, floor) = bias(&reference, &full);
             let ttuv_pred = ttuv(&full.var, &mask, t.seconds);
+            let rmse_floor = relative_rmse_less(&full.mean, &reference, &mask, Some(&full.var));
             let cell = CellResult {
                 scene: label.to_string(),
                 config: config.clone(),
@@ -569,17 +638,26 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 secs_pilot,
                 preview_secs_pred: t.preview_secs,
                 preview_secs_ref: meta.preview_secs,
+                rmse_floor: Some(rmse_floor),
+                preview_projected_pred: projected_preview(ttuv_pred, ref_mean, rmse_floor),
+                preview_projected_ref: None,
+                ref_noise: None,
             };
             let layers = [full.mean, t.film.mean(Buffer::Low), t.film.mean(Buffer::High)];
             write_bytes_atomically(&cell_npy, &image_npy(&layers, args.size, args.size))?;
             write_json(&cell_json, &cell)?;
             group_cells.push(cell);
         }
-        // Fill in what a cached cell could not know (a later --preview run).
+        // Fill in what a cached cell could not know (a later --preview run, or a
+        // reference rendered again: speedups compare timings of the same run).
         for c in &mut group_cells {
+            (c.ttuv_ref, c.secs_ref) = (meta.ttuv, meta.seconds);
+            c.speedup = if c.ttuv_pred > 0.0 { meta.ttuv / c.ttuv_pred } else { f64::INFINITY };
             c.preview_secs_ref = meta.preview_secs;
+            c.preview_projected_ref = projected_preview(meta.ttuv, ref_mean, 0.0);
+            c.ref_noise = Some(ref_noise);
         }
-        write_sheet(&args.out.join(format!("sheet_{key}.png")), &reference, &cache, &key, args)?;
+        write_sheet(&args.out.join(format!("sheet_{key}.png")), &reference, &cache, &key, args, &model_id)?;
         results.extend(group_cells);
     }
     bar.finish_and_clear();
@@ -602,12 +680,12 @@ pub fn false_colour(t: f32) -> [u8; 3] {
 /// orders, and |predicted - reference high| in false colour (scale: black 0, yellow
 /// = the mean reference high order over lit pixels, as in the window), like the
 /// thesis's figure 5.9.
-fn write_sheet(path: &Path, reference: &Image, cache: &Path, key: &str, args: &EvalArgs) -> Result<()> {
+fn write_sheet(path: &Path, reference: &Image, cache: &Path, key: &str, args: &EvalArgs, model_id: &str) -> Result<()> {
     let (w, h) = (reference.w, reference.h);
     let mut sheet = TileSheet::new(w, h, 6, args.k.len() as u32);
     let tone = ToneMap::Filmic;
     for (row, &k) in args.k.iter().enumerate() {
-        let cell_npy = cache.join(format!("{}.npy", cell_key(key, k, args)));
+        let cell_npy = cache.join(format!("{}.npy", cell_key(key, k, args, model_id)));
         let Ok(layers) = read_image_npy(&cell_npy, w, h, 3) else { continue };
         let (full, low, high) = (&layers[0], &layers[1], &layers[2]);
         let ref_high: Vec<[f32; 3]> =
@@ -670,11 +748,11 @@ fn fmt_opt(v: Option<f64>) -> String {
 /// plots against k (figure 5.8), one pair per scene.
 fn write_reports(out: &Path, results: &[CellResult], args: &EvalArgs) -> Result<()> {
     let mut csv = String::from(
-        "scene,config,rho,k,p,size,spp_ref,spp,bias,rel_bias,rel_noise_floor,ttuv_ref,ttuv_pred,speedup,secs_ref,secs_pred,secs_field,secs_pilot,preview_secs_ref,preview_secs_pred\n",
+        "scene,config,rho,k,p,size,spp_ref,spp,bias,rel_bias,rel_noise_floor,ttuv_ref,ttuv_pred,speedup,secs_ref,secs_pred,secs_field,secs_pilot,preview_secs_ref,preview_secs_pred,rmse_floor,preview_projected_ref,preview_projected_pred,ref_noise\n",
     );
     for c in results {
         csv += &format!(
-            "{},{},{},{},{},{},{},{},{:.6e},{:.6},{:.6},{:.6e},{:.6e},{:.3},{:.2},{:.2},{:.2},{:.2},{},{}\n",
+            "{},{},{},{},{},{},{},{},{:.6e},{:.6},{:.6},{:.6e},{:.6e},{:.3},{:.2},{:.2},{:.2},{:.2},{},{},{},{},{},{}\n",
             c.scene,
             c.config,
             c.rho,
@@ -694,7 +772,11 @@ fn write_reports(out: &Path, results: &[CellResult], args: &EvalArgs) -> Result<
             c.secs_field,
             c.secs_pilot,
             c.preview_secs_ref.map(|v| v.to_string()).unwrap_or_default(),
-            c.preview_secs_pred.map(|v| v.to_string()).unwrap_or_default()
+            c.preview_secs_pred.map(|v| v.to_string()).unwrap_or_default(),
+            c.rmse_floor.map(|v| v.to_string()).unwrap_or_default(),
+            c.preview_projected_ref.map(|v| v.to_string()).unwrap_or_default(),
+            c.preview_projected_pred.map(|v| v.to_string()).unwrap_or_default(),
+            c.ref_noise.map(|v| v.to_string()).unwrap_or_default()
         );
     }
     write_bytes_atomically(&out.join("results.csv"), csv.as_bytes())?;
@@ -760,18 +842,33 @@ fn write_reports(out: &Path, results: &[CellResult], args: &EvalArgs) -> Result<
         }
         let previews: Vec<&CellResult> = results
             .iter()
-            .filter(|c| c.scene == *s && (c.preview_secs_ref.is_some() || c.preview_secs_pred.is_some()))
+            .filter(|c| {
+                c.scene == *s && (args.preview || c.preview_secs_ref.is_some() || c.preview_secs_pred.is_some())
+            })
             .collect();
         if !previews.is_empty() {
-            md += "\nTime to preview (5 % relative RMSE), seconds: path tracing / prediction\n\n| config | rho | k | PT | prediction |\n|---|---|---|---|---|\n";
+            md += "\nTime to preview (5 % relative RMSE against the converged image, the reference's own noise \
+                   subtracted), seconds measured (projected from TTUV); the prediction's RMSE floor is its bias part, \
+                   at or above 5 % it never previews:\n\n\
+                   | config | rho | k | reference noise | path tracing | prediction | prediction floor | ratio |\n|---|---|---|---|---|---|---|---|\n";
             for c in previews {
+                let secs = |m: Option<f64>, p: Option<f64>| format!("{} ({})", fmt_opt(m), fmt_opt(p));
+                let ratio = match (
+                    c.preview_secs_ref.or(c.preview_projected_ref),
+                    c.preview_secs_pred.or(c.preview_projected_pred),
+                ) {
+                    (Some(a), Some(b)) if b > 0.0 => format!("{:.1}x", a / b),
+                    _ => "-".into(),
+                };
                 md += &format!(
-                    "| {} | {} | {} | {} | {} |\n",
+                    "| {} | {} | {} | {} | {} | {} | {} | {ratio} |\n",
                     c.config,
                     c.rho,
                     c.k,
-                    fmt_opt(c.preview_secs_ref),
-                    fmt_opt(c.preview_secs_pred)
+                    c.ref_noise.map(|v| format!("{:.1} %", 100.0 * v)).unwrap_or("-".into()),
+                    secs(c.preview_secs_ref, c.preview_projected_ref),
+                    secs(c.preview_secs_pred, c.preview_projected_pred),
+                    c.rmse_floor.map(|v| format!("{:.1} %", 100.0 * v)).unwrap_or("-".into()),
                 );
             }
         }
@@ -810,4 +907,104 @@ fn write_reports(out: &Path, results: &[CellResult], args: &EvalArgs) -> Result<
         eprintln!("wrote results.md, results.csv, plots and sheets to {}", out.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use engine::Rng;
+
+    /// A pixel estimate from `m` samples of value * Exp(1) (a skewed, heavy-ish tailed
+    /// estimator like a path tracer's): (mean, unbiased variance of the mean), as the
+    /// film computes them.
+    fn estimate(value: f64, m: u32, rng: &mut Rng) -> (f32, f32) {
+        let xs: Vec<f64> = (0..m).map(|_| -value * (1.0 - rng.uniform() as f64).max(1e-12).ln()).collect();
+        let mean = xs.iter().sum::<f64>() / m as f64;
+        let var = xs.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (m - 1) as f64;
+        (mean as f32, (var / m as f64) as f32)
+    }
+
+    /// Mean and standard error of per-pixel terms.
+    fn mean_se(t: &[f64]) -> (f64, f64) {
+        let n = t.len() as f64;
+        let m = t.iter().sum::<f64>() / n;
+        (m, (t.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / (n - 1.0) / n).sqrt())
+    }
+
+    /// A noisy reference of `m_ref` samples per pixel, and an image of `m_img` samples
+    /// of truth + a known relative bias up to `amp`, on 20,000 pixels.
+    fn setup(seed: u64, m_ref: u32, m_img: u32, amp: f64) -> (Vec<f64>, Vec<f64>, Image, Image) {
+        let n = 20_000;
+        let mut rng = Rng::new(seed, 0, 0);
+        let truth: Vec<f64> = (0..n).map(|_| 0.2 + 0.8 * rng.uniform() as f64).collect();
+        let bias: Vec<f64> = truth.iter().enumerate().map(|(i, t)| amp * t * (i as f64 * 0.01).sin()).collect();
+        let mk = |vals: Vec<(f32, f32)>| Image {
+            w: n as u32,
+            h: 1,
+            mean: vals.iter().map(|v| [v.0; 3]).collect(),
+            var: vals.iter().map(|v| [v.1; 3]).collect(),
+        };
+        let reference = mk(truth.iter().map(|t| estimate(*t, m_ref, &mut rng)).collect());
+        let img = mk(truth.iter().zip(&bias).map(|(t, b)| estimate(t + b, m_img, &mut rng)).collect());
+        (truth, bias, reference, img)
+    }
+
+    /// The noise-corrected squared error against a noisy reference agrees with the
+    /// squared error against the truth within 4 standard errors of the difference (the
+    /// per-pixel terms -2 (img - t)(ref - t) + (ref - t)^2 - var(ref), mean zero); the
+    /// uncorrected one is off by far more: the reference's variance.
+    #[test]
+    fn noise_corrected_rmse_matches_the_rmse_against_the_truth() {
+        for seed in 0..3 {
+            let (truth, _, reference, img) = setup(seed, 16, 64, 0.03);
+            let mask = vec![true; truth.len()];
+            let m = masked_mean(&reference.mean, &mask);
+            let est = (relative_rmse(&img.mean, &reference, &mask) * m).powi(2);
+            let terms: Vec<f64> = (0..truth.len())
+                .map(|i| {
+                    let (a, r, t) = (img.mean[i][0] as f64, reference.mean[i][0] as f64, truth[i]);
+                    (a - r).powi(2) - reference.var[i][0] as f64 - (a - t).powi(2)
+                })
+                .collect();
+            let (d, se) = mean_se(&terms);
+            let exact =
+                truth.iter().zip(&img.mean).map(|(t, a)| (a[0] as f64 - t).powi(2)).sum::<f64>() / truth.len() as f64;
+            assert!((est - exact).abs() <= 4.0 * se, "seed {seed}: estimate {est}, exact {exact}, se {se}, d {d}");
+            let naive = est + reference.var.iter().map(|v| v[0] as f64).sum::<f64>() / truth.len() as f64;
+            assert!(naive - exact > 20.0 * se, "seed {seed}: the reference noise should show: {naive} vs {exact}");
+        }
+    }
+
+    /// With the image's own variance also subtracted, what remains is the squared bias:
+    /// within 4 standard errors of its exact mean.
+    #[test]
+    fn rmse_floor_is_the_bias_part() {
+        for seed in 10..13 {
+            let (truth, bias, reference, img) = setup(seed, 256, 256, 0.1);
+            let mask = vec![true; truth.len()];
+            let m = masked_mean(&reference.mean, &mask);
+            let est = (relative_rmse_less(&img.mean, &reference, &mask, Some(&img.var)) * m).powi(2);
+            let terms: Vec<f64> = (0..truth.len())
+                .map(|i| {
+                    let (a, r) = (img.mean[i][0] as f64, reference.mean[i][0] as f64);
+                    (a - r).powi(2) - reference.var[i][0] as f64 - img.var[i][0] as f64 - bias[i].powi(2)
+                })
+                .collect();
+            let (_, se) = mean_se(&terms);
+            let exact = bias.iter().map(|b| b * b).sum::<f64>() / bias.len() as f64;
+            assert!((est - exact).abs() <= 4.0 * se, "seed {seed}: floor^2 {est}, bias^2 {exact}, se {se}");
+            assert!(exact > 8.0 * se, "the test's bias must be resolvable: {exact} vs se {se}");
+        }
+    }
+
+    /// Projection: an unbiased estimator reaching 5 % needs TTUV / (0.05 mean)^2
+    /// seconds; a floor of 3 % leaves 0.05^2 - 0.03^2 of room; 5 % leaves none.
+    #[test]
+    fn projected_preview_follows_the_variance() {
+        let t0 = projected_preview(0.01, 0.2, 0.0).unwrap();
+        assert!((t0 - 0.01 / (0.01 * 0.01)).abs() < 1e-9 * t0);
+        let t3 = projected_preview(0.01, 0.2, 0.03).unwrap();
+        assert!((t3 / t0 - 0.0025 / 0.0016).abs() < 1e-9);
+        assert!(projected_preview(0.01, 0.2, 0.05).is_none());
+    }
 }

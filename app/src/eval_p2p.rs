@@ -152,11 +152,14 @@ fn scene_file(args: &EvalP2pArgs, config: &str) -> Result<SceneFile> {
     Ok(s)
 }
 
-fn path_hash(p: &Path) -> String {
-    use std::hash::{Hash, Hasher};
-    let mut h = std::collections::hash_map::DefaultHasher::new();
-    std::path::absolute(p).unwrap_or_else(|_| p.to_owned()).hash(&mut h);
-    format!("{:016x}", h.finish())
+/// The render cache's name for a model: a fingerprint of its bytes (weights and
+/// sidecar), so a model retrained into the same file, or a new shipped one, never
+/// reuses old renders, and a file with the shipped bytes shares the shipped one's.
+fn model_id(p: Option<&Path>) -> Result<String> {
+    Ok(match p {
+        Some(p) => format!("{:016x}", models::model_file_fingerprint(p)?),
+        None => format!("{:016x}", models::p2p_train::shipped_fingerprint()),
+    })
 }
 
 /// Renders (or reads from the cache) the buffers `bufs` of one render.
@@ -214,17 +217,16 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
     if modeler::preset(&args.cloud).is_none() {
         bail!("--cloud {}: not a modeler preset ({})", args.cloud, modeler::PRESET_NAMES.join(", "));
     }
-    let mut models: Vec<(String, Option<PathBuf>, String)> =
-        vec![("single".into(), args.model.clone(), args.model.as_deref().map_or("shipped".into(), path_hash))];
+    let mut named: Vec<(String, Option<PathBuf>)> = vec![("single".into(), args.model.clone())];
     if let Some(m) = &args.multi_model {
-        models.push(("multi".into(), Some(m.clone()), path_hash(m)));
+        named.push(("multi".into(), Some(m.clone())));
     }
     for a in &args.also {
         let (name, path) = a.split_once('=').with_context(|| format!("--also {a}: expected NAME=PATH"))?;
-        models.push((name.to_string(), Some(PathBuf::from(path)), path_hash(Path::new(path))));
+        named.push((name.to_string(), Some(PathBuf::from(path))));
     }
     // Fail early, naming the file, if a model does not load.
-    for (name, path, _) in &models {
+    for (name, path) in &named {
         match path {
             Some(p) => {
                 models::p2p_train::P2pModel::load(p).map_err(|e| anyhow::anyhow!("{name} model: {e}"))?;
@@ -233,6 +235,11 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                 models::p2p_train::P2pModel::shipped().map_err(|e| anyhow::anyhow!("shipped model: {e}"))?;
             }
         }
+    }
+    let mut models: Vec<(String, Option<PathBuf>, String)> = vec![];
+    for (name, path) in named {
+        let id = model_id(path.as_deref()).with_context(|| format!("{name} model"))?;
+        models.push((name, path, id));
     }
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);

@@ -26,6 +26,11 @@ pub const SHIPPED_PATH: &str = "assets/models/global.safetensors";
 const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../assets/models/global.safetensors");
 const SHIPPED_SIDECAR: &str = include_str!("../../assets/models/global.json");
 
+/// [`crate::fingerprint`] of the shipped model's weights and sidecar.
+pub fn shipped_fingerprint() -> u64 {
+    crate::fingerprint(&[SHIPPED_WEIGHTS, SHIPPED_SIDECAR.as_bytes()])
+}
+
 /// How theta and phi are measured; a model trained under another convention is refused.
 pub const ANGLE_CONVENTION: &str = "light frame: z = -omega_L (toward the light), x, y = engine::sampling::coordinate_system(z); theta = acos(z) of omega_q in [0, pi], phi = atan2(y, x) in [0, 2 pi); omega_q points away from the query point";
 

@@ -104,6 +104,11 @@ pub const SHIPPED_PATH: &str = "assets/models/p2p.safetensors";
 const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../assets/models/p2p.safetensors");
 const SHIPPED_SIDECAR: &str = include_str!("../../assets/models/p2p.json");
 
+/// [`crate::fingerprint`] of the shipped point-to-point model's weights and sidecar.
+pub fn shipped_fingerprint() -> u64 {
+    crate::fingerprint(&[SHIPPED_WEIGHTS, SHIPPED_SIDECAR.as_bytes()])
+}
+
 impl P2pModel {
     /// Loads OUT.safetensors with its OUT.json sidecar, naming the file on any problem.
     pub fn load(weights: &Path) -> Result<Self, String> {
