@@ -225,9 +225,10 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
         let (name, path) = a.split_once('=').with_context(|| format!("--also {a}: expected NAME=PATH"))?;
         named.push((name.to_string(), Some(PathBuf::from(path))));
     }
-    // Fail early, naming the file, if a model does not load.
-    for (name, path) in &named {
-        match path {
+    // Fail early, naming the file, if a model does not load; then name its renders.
+    let mut models: Vec<(String, Option<PathBuf>, String)> = vec![];
+    for (name, path) in named {
+        match &path {
             Some(p) => {
                 models::p2p_train::P2pModel::load(p).map_err(|e| anyhow::anyhow!("{name} model: {e}"))?;
             }
@@ -235,9 +236,6 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                 models::p2p_train::P2pModel::shipped().map_err(|e| anyhow::anyhow!("shipped model: {e}"))?;
             }
         }
-    }
-    let mut models: Vec<(String, Option<PathBuf>, String)> = vec![];
-    for (name, path) in named {
         let id = model_id(path.as_deref()).with_context(|| format!("{name} model"))?;
         models.push((name, path, id));
     }
