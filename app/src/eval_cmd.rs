@@ -949,6 +949,17 @@ mod tests {
         (truth, bias, reference, img)
     }
 
+    /// Checks that `rel` (a relative RMSE over all pixels) squared, in absolute units,
+    /// matches `exact` within 4 standard errors of the per-pixel `terms`, the
+    /// differences whose mean is zero; returns (the squared estimate, its standard error).
+    fn agrees(rel: f64, reference: &Image, terms: impl Fn(usize) -> f64, exact: f64, what: &str) -> (f64, f64) {
+        let mask = vec![true; reference.mean.len()];
+        let est = (rel * masked_mean(&reference.mean, &mask)).powi(2);
+        let (_, se) = mean_se(&(0..mask.len()).map(terms).collect::<Vec<_>>());
+        assert!((est - exact).abs() <= 4.0 * se, "{what}: estimate {est}, exact {exact}, se {se}");
+        (est, se)
+    }
+
     /// The noise-corrected squared error against a noisy reference agrees with the
     /// squared error against the truth within 4 standard errors of the difference (the
     /// per-pixel terms -2 (img - t)(ref - t) + (ref - t)^2 - var(ref), mean zero); the
@@ -957,20 +968,16 @@ mod tests {
     fn noise_corrected_rmse_matches_the_rmse_against_the_truth() {
         for seed in 0..3 {
             let (truth, _, reference, img) = setup(seed, 16, 64, 0.03);
-            let mask = vec![true; truth.len()];
-            let m = masked_mean(&reference.mean, &mask);
-            let est = (relative_rmse(&img.mean, &reference, &mask) * m).powi(2);
-            let terms: Vec<f64> = (0..truth.len())
-                .map(|i| {
-                    let (a, r, t) = (img.mean[i][0] as f64, reference.mean[i][0] as f64, truth[i]);
-                    (a - r).powi(2) - reference.var[i][0] as f64 - (a - t).powi(2)
-                })
-                .collect();
-            let (d, se) = mean_se(&terms);
-            let exact =
-                truth.iter().zip(&img.mean).map(|(t, a)| (a[0] as f64 - t).powi(2)).sum::<f64>() / truth.len() as f64;
-            assert!((est - exact).abs() <= 4.0 * se, "seed {seed}: estimate {est}, exact {exact}, se {se}, d {d}");
-            let naive = est + reference.var.iter().map(|v| v[0] as f64).sum::<f64>() / truth.len() as f64;
+            let n = truth.len() as f64;
+            let px = |i: usize| (img.mean[i][0] as f64, reference.mean[i][0] as f64, reference.var[i][0] as f64);
+            let exact = truth.iter().zip(&img.mean).map(|(t, a)| (a[0] as f64 - t).powi(2)).sum::<f64>() / n;
+            let rel = relative_rmse(&img.mean, &reference, &vec![true; truth.len()]);
+            let term = |i: usize| {
+                let (a, r, v) = px(i);
+                (a - r).powi(2) - v - (a - truth[i]).powi(2)
+            };
+            let (est, se) = agrees(rel, &reference, term, exact, &format!("seed {seed}"));
+            let naive = est + reference.var.iter().map(|v| v[0] as f64).sum::<f64>() / n;
             assert!(naive - exact > 20.0 * se, "seed {seed}: the reference noise should show: {naive} vs {exact}");
         }
     }
@@ -981,18 +988,13 @@ mod tests {
     fn rmse_floor_is_the_bias_part() {
         for seed in 10..13 {
             let (truth, bias, reference, img) = setup(seed, 256, 256, 0.1);
-            let mask = vec![true; truth.len()];
-            let m = masked_mean(&reference.mean, &mask);
-            let est = (relative_rmse_less(&img.mean, &reference, &mask, Some(&img.var)) * m).powi(2);
-            let terms: Vec<f64> = (0..truth.len())
-                .map(|i| {
-                    let (a, r) = (img.mean[i][0] as f64, reference.mean[i][0] as f64);
-                    (a - r).powi(2) - reference.var[i][0] as f64 - img.var[i][0] as f64 - bias[i].powi(2)
-                })
-                .collect();
-            let (_, se) = mean_se(&terms);
             let exact = bias.iter().map(|b| b * b).sum::<f64>() / bias.len() as f64;
-            assert!((est - exact).abs() <= 4.0 * se, "seed {seed}: floor^2 {est}, bias^2 {exact}, se {se}");
+            let rel = relative_rmse_less(&img.mean, &reference, &vec![true; truth.len()], Some(&img.var));
+            let term = |i: usize| {
+                let (a, r) = (img.mean[i][0] as f64, reference.mean[i][0] as f64);
+                (a - r).powi(2) - reference.var[i][0] as f64 - img.var[i][0] as f64 - bias[i].powi(2)
+            };
+            let (_, se) = agrees(rel, &reference, term, exact, &format!("seed {seed}, floor"));
             assert!(exact > 8.0 * se, "the test's bias must be resolvable: {exact} vs se {se}");
         }
     }
