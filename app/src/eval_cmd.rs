@@ -215,13 +215,6 @@ pub fn nonempty(reference: &[[f32; 3]]) -> Vec<bool> {
     reference.iter().map(|p| avg3(p) > 0.0).collect()
 }
 
-/// Mean over `mask` of the pixels' channel averages.
-pub fn masked_mean(img: &[[f32; 3]], mask: &[bool]) -> f64 {
-    let (s, n) =
-        img.iter().zip(mask).filter(|(_, m)| **m).fold((0.0f64, 0usize), |(s, n), (p, _)| (s + avg3(p), n + 1));
-    if n == 0 { 0.0 } else { s / n as f64 }
-}
-
 /// Mean of the pixels whose value (averaged over channels) is > 0.
 pub fn lit_mean(img: &[[f32; 3]]) -> f64 {
     let (s, n) = img.iter().map(avg3).filter(|v| *v > 0.0).fold((0.0f64, 0usize), |(s, n), v| (s + v, n + 1));
@@ -332,15 +325,8 @@ pub fn relative_rmse_less(img: &[[f32; 3]], reference: &Image, mask: &[bool], im
 /// The reference's own relative noise: sqrt(mean over `mask` of its variance of the
 /// mean) / its mean; the RMSE a comparison against its mean alone could not go below.
 pub fn reference_noise(reference: &Image, mask: &[bool]) -> f64 {
-    let (mut v, mut r, mut n) = (0.0f64, 0.0f64, 0usize);
-    for (i, m) in mask.iter().enumerate() {
-        if *m {
-            v += avg3(&reference.var[i]);
-            r += avg3(&reference.mean[i]);
-            n += 1;
-        }
-    }
-    if n == 0 || r <= 0.0 { f64::INFINITY } else { (v / n as f64).sqrt() / (r / n as f64) }
+    let mean = lit_mean(&reference.mean);
+    if mean > 0.0 { ttuv(&reference.var, mask, 1.0).sqrt() / mean } else { f64::INFINITY }
 }
 
 /// What a tracked render returns.
@@ -557,7 +543,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             }
         };
         let mask = nonempty(&reference.mean);
-        let ref_mean = masked_mean(&reference.mean, &mask);
+        let ref_mean = lit_mean(&reference.mean);
         let ref_noise = reference_noise(&reference, &mask);
         if args.preview && !meta.preview_tried {
             // The reference's own noise is subtracted (`relative_rmse`), so path tracing
@@ -953,9 +939,8 @@ mod tests {
     /// matches `exact` within 4 standard errors of the per-pixel `terms`, the
     /// differences whose mean is zero; returns (the squared estimate, its standard error).
     fn agrees(rel: f64, reference: &Image, terms: impl Fn(usize) -> f64, exact: f64, what: &str) -> (f64, f64) {
-        let mask = vec![true; reference.mean.len()];
-        let est = (rel * masked_mean(&reference.mean, &mask)).powi(2);
-        let (_, se) = mean_se(&(0..mask.len()).map(terms).collect::<Vec<_>>());
+        let est = (rel * lit_mean(&reference.mean)).powi(2);
+        let (_, se) = mean_se(&(0..reference.mean.len()).map(terms).collect::<Vec<_>>());
         assert!((est - exact).abs() <= 4.0 * se, "{what}: estimate {est}, exact {exact}, se {se}");
         (est, se)
     }

@@ -14,6 +14,15 @@ fn harness() -> Harness<'static, NimbusApp> {
 
 /// Steps the window until `done` holds (the worker renders on its own thread); fails
 /// after two minutes, saying what did not happen.
+/// A window and a copy of its default scene shrunk to `w` x `h` pixels and a `res`^3
+/// grid, for the test to change and set.
+fn small_scene(w: u32, h: u32, res: u32) -> (Harness<'static, NimbusApp>, app::scene::SceneFile) {
+    let harness = harness();
+    let mut s = harness.state().scene().clone();
+    (s.camera.width, s.camera.height, s.grid.resolution) = (w, h, res);
+    (harness, s)
+}
+
 fn step_until(h: &mut Harness<'static, NimbusApp>, what: &str, done: impl Fn(&NimbusApp) -> bool) {
     let start = std::time::Instant::now();
     while !done(h.state()) {
@@ -77,9 +86,7 @@ fn panels_edits_and_undo() {
 /// bias of the prediction against the path-traced reference becomes a number.
 #[test]
 fn compare_panel_shows_the_bias() {
-    let mut h = harness();
-    let mut s = h.state().scene().clone();
-    (s.camera.width, s.camera.height, s.grid.resolution) = (32, 32, 32);
+    let (mut h, mut s) = small_scene(32, 32, 32);
     s.render.mode = "predict".into();
     h.state_mut().set_scene(s);
     // The mode switch reaches the integrator: the published image is a prediction.
@@ -87,7 +94,8 @@ fn compare_panel_shows_the_bias() {
         matches!(a.rendered_mode(), Some(engine::Mode::Predict { .. }))
     });
     h.state_mut().set_compare(true);
-    step_until(&mut h, "no comparison appeared", |a| a.compare_bias().is_some());
+    // A noise floor needs two passes of both renders: until then the bias is not judged.
+    step_until(&mut h, "no comparison appeared", |a| a.compare_bias().is_some_and(|(_, floor)| floor > 0.0));
     h.run_steps(2);
     h.get_by_label("Compare");
     h.get_by_label("predicted high orders");
@@ -113,9 +121,7 @@ fn compare_panel_shows_the_bias() {
 /// g 0.85) is outside the model's training, and compares against BDPT split at 2k + 1.
 #[test]
 fn bdpt_prediction_in_the_window() {
-    let mut h = harness();
-    let mut s = h.state().scene().clone();
-    (s.camera.width, s.camera.height, s.grid.resolution) = (24, 24, 24);
+    let (mut h, mut s) = small_scene(24, 24, 24);
     s.render.mode = "predict".into();
     s.render.integrator = "bdpt".into();
     h.state_mut().set_scene(s);
@@ -128,7 +134,8 @@ fn bdpt_prediction_in_the_window() {
     let text = h.state().worker_message().expect("the medium warning");
     assert!(text.contains("trained for albedo"), "{text}");
     h.state_mut().set_compare(true);
-    step_until(&mut h, "no comparison appeared", |a| a.compare_bias().is_some());
+    // A noise floor needs two passes of both renders: until then the bias is not judged.
+    step_until(&mut h, "no comparison appeared", |a| a.compare_bias().is_some_and(|(_, floor)| floor > 0.0));
     let (rel, floor) = h.state().compare_bias().unwrap();
     assert!(rel.is_finite() && floor > 0.0, "{rel} {floor}");
 }
@@ -235,9 +242,7 @@ fn export_writes_files() {
     use app::gui::Target;
     let dir = std::env::temp_dir().join(format!("nimbus-gui-export-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let mut h = harness();
-    let mut s = h.state().scene().clone();
-    (s.camera.width, s.camera.height, s.grid.resolution) = (24, 16, 24);
+    let (mut h, mut s) = small_scene(24, 16, 24);
     h.state_mut().set_scene(s);
     step_until(&mut h, "the worker did not render", |a| a.rendered().is_some_and(|r| r.1 >= 2));
     for (target, name) in
