@@ -352,6 +352,9 @@ fn light_path(b: &BdptSettings, scene: &Scene, sun: &crate::light::Sun, rng: &mu
 /// contribution with its weight (their weighted sum is the sample's estimate).
 /// With `prediction`, BDPT makes orders 1 ..= 2k only and the transport between
 /// the k-th vertices of the two subpaths is predicted (or extended below r).
+/// With `deferred`, predictions are not evaluated here but pushed there (their value
+/// then goes into the high buffer: see [`DeferredPrediction`]); without it they are
+/// evaluated at once, with the same random stream, so both give the same estimate.
 #[allow(clippy::too_many_arguments)]
 pub fn trace_strategies(
     settings: &RenderSettings,
@@ -361,6 +364,7 @@ pub fn trace_strategies(
     o: Vec3,
     d: Vec3,
     rng: &mut Rng,
+    mut deferred: Option<&mut Vec<DeferredPrediction>>,
     sink: &mut impl FnMut(Contribution),
 ) {
     // Prediction caps the light subpath at k vertices and the camera walk at 2k, and
@@ -462,7 +466,22 @@ pub fn trace_strategies(
                     let q = P2pQuery { emitter: y.x, omega_e: y.wo, sensor: x, omega_s: wo };
                     let scale = beta * y.beta * lp.area / pr.p;
                     let (strategy, t_multi) = if (y.x - x).length() >= pr.r {
-                        (Strategy::Predicted, pr.predictor.predict(medium, &q, rng) - t1)
+                        // The prediction's own stream, split off the path's, so that
+                        // evaluating it now or with its tile gives the same answer.
+                        let mut own = prediction_stream(rng);
+                        if let Some(list) = deferred.as_deref_mut() {
+                            list.push(DeferredPrediction {
+                                query: q,
+                                rng: own,
+                                scale: sun.radiance() * scale,
+                                t1,
+                                owner: 0,
+                            });
+                            // Nothing to add now: the value arrives with the batch.
+                            (Strategy::Predicted, f32::NAN)
+                        } else {
+                            (Strategy::Predicted, pr.predictor.predict(medium, &q, &mut own) - t1)
+                        }
                     } else {
                         let mut t = 0.0f32;
                         crate::p2p::sample_transport_by_segments(
@@ -479,6 +498,7 @@ pub fn trace_strategies(
                         (Strategy::Extended, t)
                     };
                     let value = sun.radiance() * (scale * t_multi);
+                    // (NaN also for a deferred prediction: it is added later.)
                     if value.is_finite() {
                         sink(Contribution { order: first, strategy, value, weight: 1.0 });
                     }
@@ -503,8 +523,59 @@ pub fn trace_strategies(
     }
 }
 
+/// A prediction of BDPT's prediction mode left for the caller to evaluate with
+/// others (a tile's worth) through [`TransportPredictor::predict_batch`]: the sample
+/// it belongs to gains `scale * (T - t1)` in its high buffer, T the prediction for
+/// `query` with stream `rng`. `t1` is the one-segment term already in the low buffer.
+#[derive(Clone, Debug)]
+pub struct DeferredPrediction {
+    pub query: P2pQuery,
+    pub rng: Rng,
+    pub scale: Vec3,
+    pub t1: f32,
+    /// The caller's tag: which sample it belongs to.
+    pub owner: u32,
+}
+
+impl DeferredPrediction {
+    /// What the prediction `t` adds to the high buffer (zero if not finite).
+    pub fn value(&self, t: f32) -> Vec3 {
+        let v = self.scale * (t - self.t1);
+        if v.is_finite() { v } else { Vec3::ZERO }
+    }
+}
+
+/// The random stream of one prediction, split off the path's stream `rng` (two
+/// draws from it seed a new PCG stream in a family of its own).
+fn prediction_stream(rng: &mut Rng) -> Rng {
+    let seed = rng.next_u32() as u64 | (rng.next_u32() as u64) << 32;
+    Rng::new(seed, 0x7072_6564, 0)
+}
+
+/// Evaluates `deferred` in one batch and adds each value to the high buffer of
+/// `samples[owner]`.
+pub fn resolve_deferred(
+    predictor: &dyn TransportPredictor,
+    medium: &crate::medium::Medium,
+    deferred: &mut [DeferredPrediction],
+    samples: &mut [PathSample],
+) {
+    if deferred.is_empty() {
+        return;
+    }
+    let queries: Vec<P2pQuery> = deferred.iter().map(|d| d.query).collect();
+    let mut rngs: Vec<Rng> = deferred.iter().map(|d| d.rng.clone()).collect();
+    let mut t = vec![0.0f32; deferred.len()];
+    predictor.predict_batch(medium, &queries, &mut rngs, &mut t);
+    for (d, t) in deferred.iter().zip(t) {
+        samples[d.owner as usize].high += d.value(t);
+    }
+}
+
 /// One camera sample's MIS-weighted estimate, split by order into the buffers.
-/// In prediction mode the split is at 2k + 1 (module documentation).
+/// In prediction mode the split is at 2k + 1 (module documentation); with
+/// `deferred`, its predictions are left there (see [`trace_strategies`]).
+#[allow(clippy::too_many_arguments)]
 pub fn trace(
     settings: &RenderSettings,
     b: &BdptSettings,
@@ -513,10 +584,11 @@ pub fn trace(
     o: Vec3,
     d: Vec3,
     rng: &mut Rng,
+    deferred: Option<&mut Vec<DeferredPrediction>>,
 ) -> PathSample {
     let mut out = PathSample::default();
     let k = prediction.map_or(settings.k, Prediction::first_predicted_order);
-    trace_strategies(settings, b, prediction, scene, o, d, rng, &mut |c| {
+    trace_strategies(settings, b, prediction, scene, o, d, rng, deferred, &mut |c| {
         let v = c.value * c.weight;
         if c.order == 0 {
             out.direct += v;

@@ -231,8 +231,23 @@ impl Integrator {
     /// split by scattering order.
     #[inline]
     pub fn trace(&self, scene: &Scene, o: Vec3, d: Vec3, rng: &mut Rng) -> PathSample {
+        self.trace_deferring(scene, o, d, rng, None)
+    }
+
+    /// [`Integrator::trace`], but in BDPT's prediction mode with `deferred` the
+    /// predictions are pushed there instead of evaluated, to be evaluated together by
+    /// [`Integrator::resolve_deferred`] (the same estimate, batched).
+    #[inline]
+    pub fn trace_deferring(
+        &self,
+        scene: &Scene,
+        o: Vec3,
+        d: Vec3,
+        rng: &mut Rng,
+        deferred: Option<&mut Vec<crate::bdpt::DeferredPrediction>>,
+    ) -> PathSample {
         if let Technique::Bdpt(b) = &self.technique {
-            return crate::bdpt::trace(&self.settings, b, self.transport.as_ref(), scene, o, d, rng);
+            return crate::bdpt::trace(&self.settings, b, self.transport.as_ref(), scene, o, d, rng, deferred);
         }
         let mut out = PathSample::default();
         match scene.medium.sample_free_flight(o, d, f32::INFINITY, rng) {
@@ -245,6 +260,19 @@ impl Integrator {
             }
         }
         out
+    }
+
+    /// Evaluates predictions left by [`Integrator::trace_deferring`] in one batch and
+    /// adds them to `samples[owner]`.
+    pub fn resolve_deferred(
+        &self,
+        scene: &Scene,
+        deferred: &mut [crate::bdpt::DeferredPrediction],
+        samples: &mut [PathSample],
+    ) {
+        if let Some(pr) = &self.transport {
+            crate::bdpt::resolve_deferred(pr.predictor.as_ref(), &scene.medium, deferred, samples);
+        }
     }
 
     /// Estimates the in-scattered radiance L_i(x -> wo) (eq. 2.7) at a point inside the

@@ -45,6 +45,23 @@ pub trait InScatterPredictor: Send + Sync {
 pub trait TransportPredictor: Send + Sync {
     fn predict(&self, medium: &Medium, q: &crate::p2p::P2pQuery, rng: &mut crate::rng::Rng) -> f32;
 
+    /// `out[i] = predict(medium, &queries[i], &mut rngs[i])` for every i. The renderer
+    /// collects a tile's queries and asks for them at once, so that a network can
+    /// apply each weight to several rows while it is loaded. The default answers
+    /// them one at a time; an override must give the same answers (up to rounding).
+    fn predict_batch(
+        &self,
+        medium: &Medium,
+        queries: &[crate::p2p::P2pQuery],
+        rngs: &mut [crate::rng::Rng],
+        out: &mut [f32],
+    ) {
+        assert!(queries.len() == rngs.len() && queries.len() == out.len(), "one stream and one output per query");
+        for ((q, rng), o) in queries.iter().zip(rngs.iter_mut()).zip(out.iter_mut()) {
+            *o = self.predict(medium, q, rng);
+        }
+    }
+
     /// A short name for logs and reports.
     fn name(&self) -> &str {
         "transport predictor"

@@ -125,14 +125,21 @@ impl Renderer {
                     return None;
                 }
                 let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
+                // BDPT's predictions are evaluated per tile, in one batch.
+                let mut deferred = Vec::new();
                 for y in y0..y1 {
                     for x in x0..x1 {
                         let pixel = y as u64 * w as u64 + x as u64;
                         let mut rng = Rng::new(seed, pass as u64, pixel);
                         let (o, d) = camera.generate_ray(x, y, Vec2::new(rng.uniform(), rng.uniform()));
-                        out.push(self.integrator.trace(&self.scene, o, d, &mut rng));
+                        let first = deferred.len();
+                        out.push(self.integrator.trace_deferring(&self.scene, o, d, &mut rng, Some(&mut deferred)));
+                        for p in &mut deferred[first..] {
+                            p.owner = (out.len() - 1) as u32;
+                        }
                     }
                 }
+                self.integrator.resolve_deferred(&self.scene, &mut deferred, &mut out);
                 Some(out)
             })
             .collect::<Option<Vec<_>>>()?;

@@ -236,18 +236,18 @@ pub enum ModelError {
 /// pass is a sequence of axpy's over contiguous output rows, which the compiler turns
 /// into full-width vector FMAs.
 #[derive(Clone, Debug)]
-struct Dense {
-    inputs: usize,
-    outputs: usize,
+pub(crate) struct Dense {
+    pub(crate) inputs: usize,
+    pub(crate) outputs: usize,
     /// Outputs rounded up to a multiple of 16 (padding weights are zero).
-    stride: usize,
+    pub(crate) stride: usize,
     w: Vec<f32>,
     b: Vec<f32>,
 }
 
 impl Dense {
     /// From a row-major [out][in] weight matrix (candle's / PyTorch's layout).
-    fn new(inputs: usize, outputs: usize, w_out_in: &[f32], b: &[f32]) -> Self {
+    pub(crate) fn new(inputs: usize, outputs: usize, w_out_in: &[f32], b: &[f32]) -> Self {
         let stride = outputs.div_ceil(16) * 16;
         let mut w = vec![0.0; inputs * stride];
         for o in 0..outputs {
@@ -278,8 +278,9 @@ pub struct Scratch {
     features: Vec<f32>,
 }
 
+/// The portable layer kernel: y[..stride] = act(W x + b), padding outputs included.
 #[inline(always)]
-fn layer_forward(layer: &Dense, x: &[f32], y: &mut [f32], act: Option<Activation>) {
+pub(crate) fn layer_forward(layer: &Dense, x: &[f32], y: &mut [f32], act: Option<Activation>) {
     let s = layer.stride;
     let y = &mut y[..s];
     y.copy_from_slice(&layer.b);
@@ -328,7 +329,7 @@ fn forward_generic(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
 /// then blocks of 16 for the rest of the padded row), inputs streamed through them, so
 /// each weight is loaded once and the outputs stay in registers for the whole layer.
 #[cfg(target_arch = "x86_64")]
-mod avx2 {
+pub(crate) mod avx2 {
     use super::{Activation, Dense};
     use std::arch::x86_64::*;
 
@@ -366,7 +367,7 @@ mod avx2 {
     }
 
     #[target_feature(enable = "avx2,fma")]
-    pub(super) fn layer_forward(layer: &Dense, x: &[f32], y: &mut [f32], act: Option<Activation>) {
+    pub(crate) fn layer_forward(layer: &Dense, x: &[f32], y: &mut [f32], act: Option<Activation>) {
         let s = layer.stride;
         assert!(x.len() >= layer.inputs && y.len() >= s);
         let mut b = 0;
@@ -384,6 +385,81 @@ mod avx2 {
         if let Some(a) = act {
             for v in y[..layer.outputs].iter_mut() {
                 *v = a.apply(*v);
+            }
+        }
+    }
+
+    /// Outputs b .. b + 16 of one layer for R rows at once: rows r's input is
+    /// xs[r * ws ..], its output ys[r * ws ..]. Each weight vector is loaded once and
+    /// used for all R rows (2 R accumulators), which is what makes a batch cheaper
+    /// per row than single passes: a single pass is bound by streaming the weights.
+    ///
+    /// # Safety
+    /// The CPU has AVX2 and FMA, b + 16 <= layer.stride, and for r < R,
+    /// xs.len() >= r * ws + layer.inputs and ys.len() >= r * ws + layer.stride.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn block_rows<const R: usize>(layer: &Dense, b: usize, xs: &[f32], ws: usize, ys: &mut [f32]) {
+        let s = layer.stride;
+        debug_assert!(b + 16 <= s && xs.len() >= (R - 1) * ws + layer.inputs && ys.len() >= (R - 1) * ws + s);
+        // SAFETY: the weight loads read w[i * s + b .. + 16] with i < inputs and
+        // b + 16 <= s; the input reads xs[r * ws + i] with i < inputs; the stores write
+        // ys[r * ws + b .. + 16] within r * ws + s; all bounded by the caller's contract.
+        unsafe {
+            let bias = [_mm256_loadu_ps(layer.b.as_ptr().add(b)), _mm256_loadu_ps(layer.b.as_ptr().add(b + 8))];
+            let mut acc = [[bias[0], bias[1]]; R];
+            let w = layer.w.as_ptr();
+            let x = xs.as_ptr();
+            for i in 0..layer.inputs {
+                let row = w.add(i * s + b);
+                let (w0, w1) = (_mm256_loadu_ps(row), _mm256_loadu_ps(row.add(8)));
+                for (r, a) in acc.iter_mut().enumerate() {
+                    let xv = _mm256_set1_ps(*x.add(r * ws + i));
+                    a[0] = _mm256_fmadd_ps(w0, xv, a[0]);
+                    a[1] = _mm256_fmadd_ps(w1, xv, a[1]);
+                }
+            }
+            for (r, a) in acc.iter().enumerate() {
+                _mm256_storeu_ps(ys.as_mut_ptr().add(r * ws + b), a[0]);
+                _mm256_storeu_ps(ys.as_mut_ptr().add(r * ws + b + 8), a[1]);
+            }
+        }
+    }
+
+    /// [`layer_forward`] for `rows` rows at once (row r at xs[r * ws ..], its output
+    /// at ys[r * ws ..]), four rows per weight pass.
+    #[target_feature(enable = "avx2,fma")]
+    pub(crate) fn layer_forward_rows(
+        layer: &Dense,
+        xs: &[f32],
+        ys: &mut [f32],
+        rows: usize,
+        ws: usize,
+        act: Option<Activation>,
+    ) {
+        let s = layer.stride;
+        assert!(rows > 0 && ws >= s && ws >= layer.inputs);
+        assert!(xs.len() >= (rows - 1) * ws + layer.inputs && ys.len() >= (rows - 1) * ws + s);
+        let mut b = 0;
+        while b < s {
+            let mut r = 0;
+            // SAFETY: AVX2 + FMA are this function's target features; b + 16 <= s (s
+            // is a multiple of 16); the asserts above bound every row r < rows.
+            while r + 4 <= rows {
+                unsafe { block_rows::<4>(layer, b, &xs[r * ws..], ws, &mut ys[r * ws..]) };
+                r += 4;
+            }
+            while r < rows {
+                unsafe { block_rows::<1>(layer, b, &xs[r * ws..], ws, &mut ys[r * ws..]) };
+                r += 1;
+            }
+            b += 16;
+        }
+        if let Some(a) = act {
+            for r in 0..rows {
+                for v in ys[r * ws..r * ws + layer.outputs].iter_mut() {
+                    *v = a.apply(*v);
+                }
             }
         }
     }

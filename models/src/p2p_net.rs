@@ -11,6 +11,9 @@
 //! architecture.
 
 use crate::density_features::{LevelSlice, P2pFeatures};
+#[cfg(target_arch = "x86_64")]
+use crate::global::avx2;
+use crate::global::{Activation, Dense, layer_forward};
 use crate::train::{OptState, Optimizer};
 use candle_core::{DType, Device, Tensor, Var};
 use engine::Rng;
@@ -28,15 +31,6 @@ impl Default for P2pArch {
     fn default() -> Self {
         P2pArch::Residual { width: 200, layers: 3 }
     }
-}
-
-/// One dense layer: weight [out, in] row-major, bias [out].
-#[derive(Clone, Debug)]
-struct Dense {
-    inputs: usize,
-    outputs: usize,
-    w: Vec<f32>,
-    b: Vec<f32>,
 }
 
 /// The network's parameters as candle variables.
@@ -196,19 +190,20 @@ impl P2pNetwork {
     pub fn evaluator(&self) -> candle_core::Result<P2pEvaluator> {
         let conv = |(w, b): &(Var, Var)| -> candle_core::Result<Dense> {
             let (o, i) = w.as_tensor().dims2()?;
-            Ok(Dense { inputs: i, outputs: o, w: w.as_tensor().flatten_all()?.to_vec1()?, b: b.as_tensor().to_vec1()? })
+            let w: Vec<f32> = w.as_tensor().flatten_all()?.to_vec1()?;
+            Ok(Dense::new(i, o, &w, &b.as_tensor().to_vec1::<f32>()?))
         };
         let blocks: Vec<Vec<Dense>> =
             self.blocks.iter().map(|b| b.iter().map(conv).collect()).collect::<candle_core::Result<_>>()?;
-        let widest = blocks.iter().flatten().map(|d| d.inputs.max(d.outputs)).max().unwrap_or(1);
-        Ok(P2pEvaluator {
-            residual: matches!(self.arch, P2pArch::Residual { .. }),
-            slices: self.slices.clone(),
-            n_inputs: self.n_inputs,
+        let out_w: Vec<f32> = self.out.0.as_tensor().flatten_all()?.to_vec1()?;
+        let out_b = self.out.1.as_tensor().to_vec1::<f32>()?[0];
+        Ok(P2pEvaluator::new(
+            matches!(self.arch, P2pArch::Residual { .. }),
+            self.slices.clone(),
+            self.n_inputs,
             blocks,
-            out: conv(&self.out)?,
-            widest,
-        })
+            (out_w, out_b),
+        ))
     }
 
     /// Trains on rows `x` (n x n_inputs) and targets `y` with Adam and mean squared
@@ -262,252 +257,249 @@ impl P2pNetwork {
     }
 }
 
-/// Forward passes without allocation: per-thread scratch, weights row-major.
+/// Forward passes without allocation: per-thread scratch, weights stored input-major
+/// with padded rows (`global::Dense`), evaluated by the global model's AVX2 + FMA
+/// kernels: a single pass streams each weight once with the outputs held in
+/// registers; a batch applies each weight vector to four rows while it is loaded.
 #[derive(Clone, Debug)]
 pub struct P2pEvaluator {
     residual: bool,
     slices: Vec<LevelSlice>,
     n_inputs: usize,
     blocks: Vec<Vec<Dense>>,
-    out: Dense,
-    /// The widest layer: the scratch size.
+    /// The linear output layer: weights over the last hidden layer, bias.
+    out_w: Vec<f32>,
+    out_b: f32,
+    /// The widest layer input or padded output: the scratch row size.
     widest: usize,
 }
 
 /// Scratch space of [`P2pEvaluator`]: sized once, reused.
 #[derive(Clone, Debug, Default)]
 pub struct P2pScratch {
-    input: Vec<f32>,
     a: Vec<f32>,
     b: Vec<f32>,
     prev: Vec<f32>,
 }
 
-/// Dot product with 16 independent partial sums, so that the compiler can keep them
-/// in vector registers (a single running sum is a serial dependency it must not
-/// reorder).
-#[inline(always)]
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    const L: usize = 16;
-    let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut acc = [0.0f32; L];
-    let (ac, bc) = (a.chunks_exact(L), b.chunks_exact(L));
-    let (ar, br) = (ac.remainder(), bc.remainder());
-    for (x, y) in ac.zip(bc) {
-        for l in 0..L {
-            acc[l] += x[l] * y[l];
-        }
-    }
-    let mut tail = 0.0;
-    for (x, y) in ar.iter().zip(br) {
-        tail += x * y;
-    }
-    acc.iter().sum::<f32>() + tail
-}
-
-#[inline]
-fn dense_relu(l: &Dense, x: &[f32], y: &mut [f32]) {
-    let y = &mut y[..l.outputs];
-    for (o, yo) in y.iter_mut().enumerate() {
-        let row = &l.w[o * l.inputs..(o + 1) * l.inputs];
-        *yo = (l.b[o] + dot(row, &x[..l.inputs])).max(0.0);
-    }
-}
-
-impl P2pEvaluator {
-    pub fn n_inputs(&self) -> usize {
-        self.n_inputs
-    }
-
-    pub fn scratch(&self) -> P2pScratch {
-        let widest = self.widest;
-        P2pScratch { input: vec![0.0; widest], a: vec![0.0; widest], b: vec![0.0; widest], prev: vec![0.0; widest] }
-    }
-
-    /// The network's output for one feature row.
-    pub fn forward(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports the feature the function was compiled for.
-            return unsafe { self.forward_avx2(x, s) };
-        }
-        self.forward_impl(x, s)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn forward_avx2(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
-        self.forward_impl(x, s)
-    }
-
-    /// The same pass compiled for any x86-64 (tests check it against candle too).
-    pub fn forward_portable(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
-        self.forward_impl(x, s)
-    }
-
-    #[inline(always)]
-    fn forward_impl(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
-        // Scratch sized for another network (a thread's scratch outlives models of
-        // different widths): size it for this one, once.
-        if s.a.len() < self.widest {
-            *s = self.scratch();
-        }
-        assert_eq!(x.len(), self.n_inputs, "feature row length");
-        if s.a.is_empty() {
-            *s = self.scratch();
-        }
-        let mut width = 0;
-        if self.residual {
-            for (bi, (sl, block)) in self.slices.iter().zip(&self.blocks).enumerate() {
-                // Block input: previous output, this level's densities, (phi_D).
-                let mut n = 0;
-                if bi > 0 {
-                    s.input[..width].copy_from_slice(&s.prev[..width]);
-                    n = width;
-                }
-                s.input[n..n + sl.len].copy_from_slice(&x[sl.start..sl.start + sl.len]);
-                n += sl.len;
-                if bi + 1 == self.slices.len() {
-                    s.input[n] = x[self.n_inputs - 1];
-                }
-                let (mut cur, mut next) = (&mut s.a, &mut s.b);
-                cur[..block[0].inputs].copy_from_slice(&s.input[..block[0].inputs]);
-                for l in block {
-                    dense_relu(l, cur, next);
-                    std::mem::swap(&mut cur, &mut next);
-                }
-                let w = block.last().unwrap().outputs;
-                if bi > 0 {
-                    for (p, c) in s.prev[..w].iter_mut().zip(&cur[..w]) {
-                        *p += c;
-                    }
-                } else {
-                    s.prev[..w].copy_from_slice(&cur[..w]);
-                }
-                width = w;
-            }
-        } else {
-            let block = &self.blocks[0];
-            let (mut cur, mut next) = (&mut s.a, &mut s.b);
-            cur[..x.len()].copy_from_slice(x);
-            for l in block {
-                dense_relu(l, cur, next);
-                std::mem::swap(&mut cur, &mut next);
-            }
-            width = block.last().map(|l| l.outputs).unwrap_or(x.len());
-            s.prev[..width].copy_from_slice(&cur[..width]);
-        }
-        let mut y = self.out.b[0];
-        for (w, h) in self.out.w.iter().zip(&s.prev[..width]) {
-            y += w * h;
-        }
-        y
-    }
-
-    /// One output per row of `xs`, BATCH rows at a time: each weight row is read
-    /// once per group and applied to every row of it while it is in the L1 cache.
-    pub fn forward_batch(&self, xs: &[f32], out: &mut [f32], s: &mut P2pBatchScratch) {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports the feature the function was compiled for.
-            return unsafe { self.forward_batch_avx2(xs, out, s) };
-        }
-        self.forward_batch_impl(xs, out, s)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn forward_batch_avx2(&self, xs: &[f32], out: &mut [f32], s: &mut P2pBatchScratch) {
-        self.forward_batch_impl(xs, out, s)
-    }
-
-    #[inline(always)]
-    fn forward_batch_impl(&self, xs: &[f32], out: &mut [f32], s: &mut P2pBatchScratch) {
-        let n = self.n_inputs;
-        assert_eq!(xs.len(), n * out.len(), "rows and outputs");
-        let widest = self.blocks.iter().flatten().map(|d| d.inputs.max(d.outputs)).max().unwrap_or(1).max(n);
-        if s.width < widest {
-            *s = P2pBatchScratch {
-                width: widest,
-                a: vec![0.0; BATCH * widest],
-                b: vec![0.0; BATCH * widest],
-                prev: vec![0.0; BATCH * widest],
-            };
-        }
-        let ws = s.width;
-        for (xg, og) in xs.chunks(BATCH * n).zip(out.chunks_mut(BATCH)) {
-            let rows = og.len();
-            let layers = |block: &[Dense], cur: &mut Vec<f32>, next: &mut Vec<f32>| {
-                for l in block {
-                    for o in 0..l.outputs {
-                        let w = &l.w[o * l.inputs..(o + 1) * l.inputs];
-                        for r in 0..rows {
-                            let x = &cur[r * ws..r * ws + l.inputs];
-                            next[r * ws + o] = (l.b[o] + dot(w, x)).max(0.0);
-                        }
-                    }
-                    std::mem::swap(cur, next);
-                }
-            };
-            let mut width = 0;
-            if self.residual {
-                for (bi, (sl, block)) in self.slices.iter().zip(&self.blocks).enumerate() {
-                    for r in 0..rows {
-                        let x = &xg[r * n..(r + 1) * n];
-                        let dst = &mut s.a[r * ws..(r + 1) * ws];
-                        let mut k = 0;
-                        if bi > 0 {
-                            dst[..width].copy_from_slice(&s.prev[r * ws..r * ws + width]);
-                            k = width;
-                        }
-                        dst[k..k + sl.len].copy_from_slice(&x[sl.start..sl.start + sl.len]);
-                        if bi + 1 == self.slices.len() {
-                            dst[k + sl.len] = x[n - 1];
-                        }
-                    }
-                    layers(block, &mut s.a, &mut s.b);
-                    let w = block.last().unwrap().outputs;
-                    for r in 0..rows {
-                        let (p, c) = (&mut s.prev[r * ws..r * ws + w], &s.a[r * ws..r * ws + w]);
-                        if bi > 0 {
-                            p.iter_mut().zip(c).for_each(|(p, c)| *p += c);
-                        } else {
-                            p.copy_from_slice(c);
-                        }
-                    }
-                    width = w;
-                }
-            } else {
-                for r in 0..rows {
-                    s.a[r * ws..r * ws + n].copy_from_slice(&xg[r * n..(r + 1) * n]);
-                }
-                layers(&self.blocks[0], &mut s.a, &mut s.b);
-                width = self.blocks[0].last().map(|l| l.outputs).unwrap_or(n);
-                for r in 0..rows {
-                    let (p, c) = (&mut s.prev[r * ws..r * ws + width], &s.a[r * ws..r * ws + width]);
-                    p.copy_from_slice(c);
-                }
-            }
-            for (r, o) in og.iter_mut().enumerate() {
-                let mut y = self.out.b[0];
-                for (w, h) in self.out.w.iter().zip(&s.prev[r * ws..r * ws + width]) {
-                    y += w * h;
-                }
-                *o = y;
-            }
-        }
-    }
-}
-
-/// Rows evaluated together by [`P2pEvaluator::forward_batch`].
-pub const BATCH: usize = 8;
-
-/// Scratch space of the batched evaluator (sized on first use).
+/// Scratch space of the batched evaluator (sized on first use): BATCH rows.
 #[derive(Clone, Debug, Default)]
 pub struct P2pBatchScratch {
     width: usize,
     a: Vec<f32>,
     b: Vec<f32>,
     prev: Vec<f32>,
+}
+
+/// Rows evaluated together by [`P2pEvaluator::forward_batch`].
+pub const BATCH: usize = 8;
+
+const RELU: Option<Activation> = Some(Activation::Relu);
+
+impl P2pEvaluator {
+    fn new(
+        residual: bool,
+        slices: Vec<LevelSlice>,
+        n_inputs: usize,
+        blocks: Vec<Vec<Dense>>,
+        out: (Vec<f32>, f32),
+    ) -> Self {
+        let widest = blocks.iter().flatten().map(|d| d.inputs.max(d.stride)).max().unwrap_or(1).max(n_inputs);
+        P2pEvaluator { residual, slices, n_inputs, blocks, out_w: out.0, out_b: out.1, widest }
+    }
+
+    pub fn n_inputs(&self) -> usize {
+        self.n_inputs
+    }
+
+    pub fn scratch(&self) -> P2pScratch {
+        let w = self.widest;
+        P2pScratch { a: vec![0.0; w], b: vec![0.0; w], prev: vec![0.0; w] }
+    }
+
+    /// The network's output for one feature row.
+    pub fn forward(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU supports the features the function was compiled for.
+            return unsafe { self.forward_avx2(x, s) };
+        }
+        self.forward_portable(x, s)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn forward_avx2(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
+        // The closure inherits this function's target features, so the kernel call is safe.
+        self.forward_with(x, s, 1, |l, x, y, _| avx2::layer_forward(l, x, y, RELU))
+    }
+
+    /// The same pass with the portable kernel (what CPUs without AVX2 + FMA run;
+    /// tests check it against candle too).
+    pub fn forward_portable(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
+        self.forward_with(x, s, 1, |l, x, y, _| layer_forward(l, x, y, RELU))
+    }
+
+    /// One output per row of `xs`, BATCH rows at a time.
+    pub fn forward_batch(&self, xs: &[f32], out: &mut [f32], s: &mut P2pBatchScratch) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU supports the features the function was compiled for.
+            return unsafe { self.forward_batch_avx2(xs, out, s) };
+        }
+        self.forward_batch_portable(xs, out, s)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn forward_batch_avx2(&self, xs: &[f32], out: &mut [f32], s: &mut P2pBatchScratch) {
+        self.forward_batch_with(xs, out, s, |l, x, y, rows, ws| avx2::layer_forward_rows(l, x, y, rows, ws, RELU))
+    }
+
+    /// [`P2pEvaluator::forward_batch`] with the portable kernel.
+    pub fn forward_batch_portable(&self, xs: &[f32], out: &mut [f32], s: &mut P2pBatchScratch) {
+        self.forward_batch_with(xs, out, s, |l, x, y, rows, ws| {
+            for r in 0..rows {
+                layer_forward(l, &x[r * ws..], &mut y[r * ws..], RELU);
+            }
+        })
+    }
+
+    #[inline(always)]
+    fn forward_batch_with(
+        &self,
+        xs: &[f32],
+        out: &mut [f32],
+        s: &mut P2pBatchScratch,
+        mut layers: impl FnMut(&Dense, &[f32], &mut [f32], usize, usize),
+    ) {
+        let n = self.n_inputs;
+        assert_eq!(xs.len(), n * out.len(), "rows and outputs");
+        if s.width < self.widest {
+            let w = self.widest;
+            *s = P2pBatchScratch {
+                width: w,
+                a: vec![0.0; BATCH * w],
+                b: vec![0.0; BATCH * w],
+                prev: vec![0.0; BATCH * w],
+            };
+        }
+        let ws = s.width;
+        let mut scratch =
+            P2pScratch { a: std::mem::take(&mut s.a), b: std::mem::take(&mut s.b), prev: std::mem::take(&mut s.prev) };
+        for (xg, og) in xs.chunks(BATCH * n).zip(out.chunks_mut(BATCH)) {
+            let rows = og.len();
+            self.pass(
+                &mut scratch,
+                rows,
+                ws,
+                |r, dst, k, sl| dst[k..k + sl.len].copy_from_slice(&xg[r * n + sl.start..r * n + sl.start + sl.len]),
+                |r| xg[r * n + n - 1],
+                &mut layers,
+                |r, y| og[r] = y,
+            );
+        }
+        (s.a, s.b, s.prev) = (scratch.a, scratch.b, scratch.prev);
+    }
+
+    #[inline(always)]
+    fn forward_with(
+        &self,
+        x: &[f32],
+        s: &mut P2pScratch,
+        rows: usize,
+        mut layer: impl FnMut(&Dense, &[f32], &mut [f32], usize),
+    ) -> f32 {
+        assert_eq!(x.len(), self.n_inputs, "feature row length");
+        // A thread's scratch outlives models of different widths: size it for this one.
+        if s.a.len() < self.widest {
+            *s = self.scratch();
+        }
+        let n = self.n_inputs;
+        let ws = self.widest;
+        let mut y = 0.0;
+        self.pass(
+            s,
+            rows,
+            ws,
+            |_, dst, k, sl| dst[k..k + sl.len].copy_from_slice(&x[sl.start..sl.start + sl.len]),
+            |_| x[n - 1],
+            |l: &Dense, x: &[f32], out: &mut [f32], _rows: usize, ws: usize| layer(l, x, out, ws),
+            |_, v| y = v,
+        );
+        y
+    }
+
+    /// One pass over `rows` rows held in scratch rows of `ws` values: `slice(r, dst,
+    /// k, sl)` writes row r's densities of level slice `sl` into dst[k ..], `phi(r)` is
+    /// row r's diffusion feature (residual networks) or ignored, `layer` evaluates
+    /// one ReLU layer for all rows, `emit(r, y)` takes the outputs.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn pass(
+        &self,
+        s: &mut P2pScratch,
+        rows: usize,
+        ws: usize,
+        mut slice: impl FnMut(usize, &mut [f32], usize, &LevelSlice),
+        phi: impl Fn(usize) -> f32,
+        mut layer: impl FnMut(&Dense, &[f32], &mut [f32], usize, usize),
+        mut emit: impl FnMut(usize, f32),
+    ) {
+        let mut width = 0;
+        let (a, b, prev) = (&mut s.a, &mut s.b, &mut s.prev);
+        if self.residual {
+            let last = self.slices.len() - 1;
+            for (bi, (sl, block)) in self.slices.iter().zip(&self.blocks).enumerate() {
+                // Block input: the previous blocks' sum, this level's densities, (phi_D).
+                for r in 0..rows {
+                    let dst = &mut a[r * ws..(r + 1) * ws];
+                    let mut k = 0;
+                    if bi > 0 {
+                        dst[..width].copy_from_slice(&prev[r * ws..r * ws + width]);
+                        k = width;
+                    }
+                    slice(r, dst, k, sl);
+                    if bi == last {
+                        dst[k + sl.len] = phi(r);
+                    }
+                }
+                let (mut cur, mut next) = (&mut *a, &mut *b);
+                for l in block {
+                    layer(l, cur, next, rows, ws);
+                    std::mem::swap(&mut cur, &mut next);
+                }
+                let w = block.last().expect("blocks have layers").outputs;
+                for r in 0..rows {
+                    let (p, c) = (&mut prev[r * ws..r * ws + w], &cur[r * ws..r * ws + w]);
+                    if bi > 0 {
+                        p.iter_mut().zip(c).for_each(|(p, c)| *p += c);
+                    } else {
+                        p.copy_from_slice(c);
+                    }
+                }
+                width = w;
+            }
+        } else {
+            let block = &self.blocks[0];
+            let whole = LevelSlice { start: 0, len: self.n_inputs };
+            for r in 0..rows {
+                slice(r, &mut a[r * ws..(r + 1) * ws], 0, &whole);
+            }
+            let (mut cur, mut next) = (&mut *a, &mut *b);
+            for l in block {
+                layer(l, cur, next, rows, ws);
+                std::mem::swap(&mut cur, &mut next);
+            }
+            width = block.last().map(|l| l.outputs).unwrap_or(self.n_inputs);
+            for r in 0..rows {
+                prev[r * ws..r * ws + width].copy_from_slice(&cur[r * ws..r * ws + width]);
+            }
+        }
+        for r in 0..rows {
+            let h = &prev[r * ws..r * ws + width];
+            let y = self.out_b + self.out_w.iter().zip(h).map(|(w, h)| w * h).sum::<f32>();
+            emit(r, y);
+        }
+    }
 }

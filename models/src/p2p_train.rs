@@ -11,7 +11,7 @@
 
 use crate::density_features::{DensityPyramid, LocalFrame, P2pFeatures};
 use crate::p2p_datagen::P2pManifest;
-use crate::p2p_net::{P2pArch, P2pEvaluator, P2pNetwork, P2pScratch};
+use crate::p2p_net::{P2pArch, P2pBatchScratch, P2pEvaluator, P2pNetwork, P2pScratch};
 use crate::train::OptState;
 use candle_core::Device;
 use engine::Rng;
@@ -160,11 +160,23 @@ impl P2pModel {
         input: &mut Vec<f32>,
         scratch: &mut P2pScratch,
     ) -> f32 {
+        input.resize(raw.len(), 0.0);
+        self.standardize(raw, input);
+        self.finish(self.eval.forward(input, scratch), frame_scale)
+    }
+
+    /// The network's input from raw features: ln(1 + x), standardized.
+    fn standardize(&self, raw: &[f32], input: &mut [f32]) {
         let s = &self.sidecar;
-        input.clear();
-        input.extend(raw.iter().enumerate().map(|(i, v)| (v.max(0.0).ln_1p() - s.feature_mean[i]) / s.feature_std[i]));
-        let y = self.eval.forward(input, scratch) * s.target_std + s.target_mean;
-        y.exp() / (frame_scale * frame_scale)
+        for (i, (x, v)) in input.iter_mut().zip(raw).enumerate() {
+            *x = (v.max(0.0).ln_1p() - s.feature_mean[i]) / s.feature_std[i];
+        }
+    }
+
+    /// T in world units from the network's output for a pair `frame_scale` apart.
+    fn finish(&self, y: f32, frame_scale: f32) -> f32 {
+        let s = &self.sidecar;
+        (y * s.target_std + s.target_mean).exp() / (frame_scale * frame_scale)
     }
 
     /// Features and prediction for an emitter-sensor pair.
@@ -179,6 +191,10 @@ thread_local! {
     /// Per render thread: raw features, network input and the network's scratch.
     static SCRATCH: std::cell::RefCell<(Vec<f32>, Vec<f32>, P2pScratch)> =
         std::cell::RefCell::new((Vec::new(), Vec::new(), P2pScratch::default()));
+    /// Per render thread, for batches: network inputs, frame scales, batch scratch
+    /// (grown to the largest batch seen, then reused).
+    static BATCH_SCRATCH: std::cell::RefCell<(Vec<f32>, Vec<f32>, Vec<f32>, P2pBatchScratch)> =
+        std::cell::RefCell::new(Default::default());
 }
 
 /// A point-to-point model bound to one cloud: its density pyramid is built once
@@ -239,6 +255,43 @@ impl engine::TransportPredictor for BoundP2pModel {
             raw.resize(s.features.len(), 0.0);
             s.features.write(&self.pyramid, self.rho, s.albedo, &frame, raw);
             self.model.predict_features(raw, frame.scale, input, scratch)
+        })
+    }
+
+    /// Features for every query, then the network over all rows at once (four rows
+    /// per weight pass), which costs a fraction of single passes.
+    fn predict_batch(
+        &self,
+        _medium: &engine::Medium,
+        queries: &[engine::p2p::P2pQuery],
+        rngs: &mut [Rng],
+        out: &mut [f32],
+    ) {
+        assert!(queries.len() == rngs.len() && queries.len() == out.len(), "one stream and one output per query");
+        BATCH_SCRATCH.with_borrow_mut(|(raw, input, scales, bs)| {
+            let s = &self.model.sidecar;
+            let n = s.features.len();
+            raw.resize(n, 0.0);
+            input.resize(queries.len() * n, 0.0);
+            scales.clear();
+            for ((q, rng), row) in queries.iter().zip(rngs.iter_mut()).zip(input.chunks_exact_mut(n)) {
+                // The same draw as `predict`: a random rotation about the axis.
+                match LocalFrame::new(q.emitter, q.sensor, std::f32::consts::TAU * rng.uniform()) {
+                    Some(frame) => {
+                        s.features.write(&self.pyramid, self.rho, s.albedo, &frame, raw);
+                        self.model.standardize(raw, row);
+                        scales.push(frame.scale);
+                    }
+                    None => {
+                        row.fill(0.0);
+                        scales.push(f32::NAN);
+                    }
+                }
+            }
+            self.model.eval.forward_batch(&input[..queries.len() * n], out, bs);
+            for (o, &scale) in out.iter_mut().zip(scales.iter()) {
+                *o = if scale.is_nan() { 0.0 } else { self.model.finish(*o, scale) };
+            }
         })
     }
 

@@ -58,3 +58,31 @@ fn depth_field_features_and_predictions_match_ray_marching() {
     let x = Vec3::ZERO;
     assert_eq!(bound.predict(&medium, &other, x, Vec3::X), model.predict(&medium, &other, x, Vec3::X));
 }
+
+/// The point-to-point model bound to a cloud answers a batch (how the renderer asks
+/// for a tile's predictions) exactly as it answers the same queries one by one with
+/// the same streams, including a degenerate pair (emitter = sensor: zero).
+#[test]
+fn batched_point_to_point_predictions_match_single_ones() {
+    use engine::TransportPredictor;
+    use engine::p2p::P2pQuery;
+    use models::p2p_train::{BoundP2pModel, P2pModel};
+    let medium = Medium::new(Arc::new(blob(48)), 25.0, 0.99, PhaseFunction::Isotropic).unwrap();
+    let bound = BoundP2pModel::new(P2pModel::shipped().unwrap(), &medium);
+    let mut rng = Rng::new(23, 0, 0);
+    let mut point = || Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 0.6 - 0.3;
+    let mut queries: Vec<P2pQuery> =
+        (0..37).map(|_| P2pQuery { emitter: point(), omega_e: Vec3::Z, sensor: point(), omega_s: -Vec3::Z }).collect();
+    queries[5].sensor = queries[5].emitter;
+    let streams: Vec<Rng> = (0..queries.len() as u64).map(|i| Rng::new(29, i, 0)).collect();
+    let single: Vec<f32> =
+        queries.iter().zip(streams.clone()).map(|(q, mut r)| bound.predict(&medium, q, &mut r)).collect();
+    let mut batched = vec![f32::NAN; queries.len()];
+    bound.predict_batch(&medium, &queries, &mut streams.clone(), &mut batched);
+    assert_eq!(single[5], 0.0);
+    assert_eq!(batched[5], 0.0);
+    for (i, (a, b)) in single.iter().zip(&batched).enumerate() {
+        assert!(a.is_finite() && (i == 5 || *a > 0.0), "query {i}: {a}");
+        assert!((a - b).abs() <= 1e-4 * a.abs(), "query {i}: single {a}, batched {b}");
+    }
+}

@@ -41,9 +41,14 @@ fn evaluator_matches_candle() {
         let reused: Vec<f32> = x.chunks(spec.len()).map(|r| eval.forward(r, &mut shared)).collect();
         let mut reused_batch = vec![0.0; 8];
         eval.forward_batch(&x, &mut reused_batch, &mut shared_batch);
+        // The portable batch kernel, 7 rows (a group that is not a multiple of four).
+        let mut portable_batch = vec![0.0; 7];
+        eval.forward_batch_portable(&x[..7 * spec.len()], &mut portable_batch, &mut Default::default());
         for (i, w) in want.iter().enumerate() {
-            for g in
-                [single[i], portable[i], got[i], reused[i], reused_batch[i]].into_iter().chain(tail.get(i).copied())
+            for g in [single[i], portable[i], got[i], reused[i], reused_batch[i]]
+                .into_iter()
+                .chain(tail.get(i).copied())
+                .chain(portable_batch.get(i).copied())
             {
                 assert!((g - w).abs() <= 1e-4 * (1.0 + w.abs()), "{arch:?} row {i}: {g} vs {w}");
             }

@@ -191,6 +191,7 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
                 o,
                 d,
                 &mut rng,
+                None,
                 &mut |c| match c.strategy {
                     engine::bdpt::Strategy::Predicted => predicted += 1,
                     engine::bdpt::Strategy::Extended => extended += 1,
@@ -217,6 +218,45 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
     let zb = z(&bd[2], &pt[2]);
     println!("30 % biased predictor: high {:.5} vs PT {:.5}, z {zb:+.2}", bd[2].mean, pt[2].mean);
     assert!(zb > bound, "a 30 % biased predictor went unseen: z = {zb:.2}");
+}
+
+/// Predictions deferred to a batch (how the renderer evaluates a tile's) give the
+/// same samples as predictions evaluated on the spot: each has its own stream.
+#[test]
+fn deferred_predictions_match_immediate_ones() {
+    let scene = scene(0.0);
+    let integ = predicting(9, 1, 0.1, 0.5);
+    let cam = &scene.camera;
+    let (w, h) = (cam.width(), cam.height());
+    let (mut deferred, mut batched, mut immediate) = (Vec::new(), Vec::new(), Vec::new());
+    for pass in 0..200u64 {
+        for px in 0..w * h {
+            let start = || {
+                let mut rng = Rng::new(9, pass, px as u64);
+                let (o, d) = cam.generate_ray(px % w, px / w, Vec2::new(rng.uniform(), rng.uniform()));
+                (o, d, rng)
+            };
+            let (o, d, mut rng) = start();
+            immediate.push(integ.trace(&scene, o, d, &mut rng));
+            let (o, d, mut rng) = start();
+            let first = deferred.len();
+            batched.push(integ.trace_deferring(&scene, o, d, &mut rng, Some(&mut deferred)));
+            for p in &mut deferred[first..] {
+                p.owner = (batched.len() - 1) as u32;
+            }
+        }
+    }
+    println!("{} predictions deferred", deferred.len());
+    assert!(deferred.len() > 100, "only {} predictions", deferred.len());
+    integ.resolve_deferred(&scene, &mut deferred, &mut batched);
+    let mut differ = 0;
+    for (a, b) in immediate.iter().zip(&batched) {
+        for (x, y) in [(a.direct, b.direct), (a.low, b.low), (a.high, b.high)] {
+            assert!((x - y).abs().max_element() <= 1e-5 * (1.0 + x.abs().max_element()), "{x} vs {y}");
+            differ += (x != Vec3::ZERO) as usize;
+        }
+    }
+    assert!(differ > 100);
 }
 
 /// BDPT refuses prediction mode and bad caps with a message, and is deterministic.
