@@ -124,6 +124,10 @@ pub struct RenderArgs {
     /// Distance threshold r of BDPT prediction (default 0.08).
     #[arg(long)]
     pub r: Option<f32>,
+    /// Light subpaths offered to each camera end vertex in BDPT prediction, one
+    /// chosen by resampling (default 8; 1 is the thesis's pairing).
+    #[arg(long)]
+    pub candidates: Option<u32>,
 }
 
 #[derive(Args, Debug)]
@@ -367,6 +371,9 @@ fn render(args: RenderArgs) -> Result<()> {
     }
     if let Some(r) = args.r {
         file.render.r = r;
+    }
+    if let Some(m) = args.candidates {
+        file.render.candidates = m;
     }
     if let Some(m) = &args.model {
         // Relative to where nimbus runs, like every other path on the command line.

@@ -57,6 +57,10 @@ pub struct EvalP2pArgs {
     /// Distance threshold r.
     #[arg(long, default_value_t = engine::bdpt::Prediction::DEFAULT_R)]
     pub r: f32,
+    /// Light subpath candidates per camera end vertex (predictions and the estimated
+    /// baseline alike)
+    #[arg(long, default_value_t = engine::bdpt::Prediction::DEFAULT_CANDIDATES)]
+    pub candidates: u32,
     /// The cloud (a modeler preset).
     #[arg(long, default_value = "scene-a")]
     pub cloud: String,
@@ -135,16 +139,26 @@ pub struct P2pCell {
     pub vs_path_tracing: f64,
     pub secs_ref: f64,
     pub secs_pred: f64,
+    /// Seconds of the estimated baseline's render (the same spp as the prediction's).
+    #[serde(default)]
+    pub secs_estimated: f64,
+    /// Per-sample variance of the estimated baseline over that of the prediction
+    /// (high orders, same spp): the speedup a prediction costing what one
+    /// point-to-point sample costs would reach. speedup_thesis = variance_ratio x
+    /// secs_estimated / secs_pred.
+    #[serde(default)]
+    pub variance_ratio: f64,
 }
 
 fn scene_file(args: &EvalP2pArgs, config: &str) -> Result<SceneFile> {
     let text = format!(
         "seed = 1\n[grid]\npreset = \"{}\"\nresolution = {}\n[medium]\nrho = 25.0\nalbedo = 0.99\nphase = \"isotropic\"\n\
-         [camera]\npreset = \"{config}\"\nwidth = {s}\nheight = {s}\n[render]\nintegrator = \"bdpt\"\np = {}\nr = {}\n",
+         [camera]\npreset = \"{config}\"\nwidth = {s}\nheight = {s}\n[render]\nintegrator = \"bdpt\"\np = {}\nr = {}\ncandidates = {}\n",
         args.cloud,
         args.res,
         args.p,
         args.r,
+        args.candidates,
         s = args.size
     );
     let s = SceneFile::from_toml_str(&text, "point-to-point evaluation scene")?;
@@ -258,6 +272,9 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
         let base = scene_file(args, config)?;
         let scene = Arc::new(base.build_scene(None)?);
         let tag = format!("{}_{config}_{}_{}", args.cloud, args.size, args.res);
+        // Renders with light subpath candidates are named by them (1: no suffix, the
+        // names of earlier caches).
+        let m = if args.candidates == 1 { String::new() } else { format!("_m{}", args.candidates) };
         let mut caches: Vec<PredictorCache> = models.iter().map(|_| PredictorCache::default()).collect();
         let mut none = PredictorCache::default();
         let step = |n: u32, start: u64| bar.set_position(start + n as u64);
@@ -306,11 +323,12 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
             let start = done;
             let (base_img, base_meta) = cached(
                 &cache,
-                &format!("{tag}_estimated_k{k}_p{}_r{}_spp{}", args.p, args.r, args.spp),
+                &format!("{tag}_estimated_k{k}_p{}_r{}{m}_spp{}", args.p, args.r, args.spp),
                 &scene,
                 &mut || {
                     let estimator = Arc::new(engine::p2p::EstimatedTransport::default());
-                    Ok(Integrator::bdpt_prediction(pred.settings(), Default::default(), estimator, args.r)?)
+                    Ok(Integrator::bdpt_prediction(pred.settings(), Default::default(), estimator, args.r)?
+                        .with_light_candidates(args.candidates)?)
                 },
                 args.spp,
                 &[Buffer::High],
@@ -326,7 +344,7 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                 let start = done;
                 let (imgs, meta) = cached(
                     &cache,
-                    &format!("{tag}_pred_{id}_k{k}_p{}_r{}_spp{}", args.p, args.r, args.spp),
+                    &format!("{tag}_pred_{id}_k{k}_p{}_r{}{m}_spp{}", args.p, args.r, args.spp),
                     &scene,
                     &mut || from_file(&pred, &scene, &mut caches[mi]),
                     args.spp,
@@ -364,6 +382,12 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                     vs_path_tracing: if ttuv_pred_full > 0.0 { ttuv_pt / ttuv_pred_full } else { f64::INFINITY },
                     secs_ref: ref_meta.seconds,
                     secs_pred: meta.seconds,
+                    secs_estimated: base_meta.seconds,
+                    variance_ratio: if ttuv_pred > 0.0 {
+                        (ttuv_base / base_meta.seconds.max(1e-9)) / (ttuv_pred / meta.seconds.max(1e-9))
+                    } else {
+                        f64::INFINITY
+                    },
                 };
                 if !args.quiet {
                     bar.println(format!(
@@ -422,11 +446,11 @@ fn write_sheet(path: &Path, size: u32, rows: &[(Vec<[f32; 3]>, Vec<Vec<[f32; 3]>
 
 fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()> {
     let mut csv = String::from(
-        "config,model,k,mae,bias,rel_bias,rel_noise_floor,rel_bias_estimated,ttuv_bdpt_high,ttuv_estimated_high,ttuv_pred_high,speedup_thesis,speedup,ttuv_pt_full,ttuv_pred_full,vs_path_tracing,secs_ref,secs_pred\n",
+        "config,model,k,mae,bias,rel_bias,rel_noise_floor,rel_bias_estimated,ttuv_bdpt_high,ttuv_estimated_high,ttuv_pred_high,speedup_thesis,speedup,ttuv_pt_full,ttuv_pred_full,vs_path_tracing,secs_ref,secs_pred,secs_estimated,variance_ratio\n",
     );
     for c in cells {
         csv += &format!(
-            "{},{},{},{:.6e},{:.6e},{:.5},{:.5},{:.5},{:.6e},{:.6e},{:.6e},{:.4},{:.4},{:.6e},{:.6e},{:.5},{:.2},{:.2}\n",
+            "{},{},{},{:.6e},{:.6e},{:.5},{:.5},{:.5},{:.6e},{:.6e},{:.6e},{:.4},{:.4},{:.6e},{:.6e},{:.5},{:.2},{:.2},{:.2},{:.4}\n",
             c.config,
             c.model,
             c.k,
@@ -444,7 +468,9 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
             c.ttuv_pred_full,
             c.vs_path_tracing,
             c.secs_ref,
-            c.secs_pred
+            c.secs_pred,
+            c.secs_estimated,
+            c.variance_ratio
         );
     }
     write_bytes_atomically(&out.join("p2p.csv"), csv.as_bytes())?;
@@ -459,8 +485,9 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
     };
     let mut md = format!(
         "# Point-to-point model: evaluation (thesis 6.5)\n\n{} at {}x{}, rho 25, albedo 0.99, isotropic; BDPT references \
-         {} spp (split at 2k + 1), predictions and the estimated baseline {} spp, p {}, r {}.\n\n",
-        args.cloud, args.size, args.size, args.spp_ref, args.spp, args.p, args.r
+         {} spp (split at 2k + 1), predictions and the estimated baseline {} spp, p {}, r {}, {} light subpath \
+         candidate(s) per camera end vertex.\n\n",
+        args.cloud, args.size, args.size, args.spp_ref, args.spp, args.p, args.r, args.candidates
     );
     md += "## Bias of the high orders (table 6.2)\n\nMAE: the thesis's measure (mean absolute error of the high-order \
            image, all pixels, linear; it includes noise, and its scale depends on the scene's brightness). Relative bias: \
@@ -483,18 +510,22 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
     md += "\n## TTUV and speedup (table 6.3)\n\nTTUV of the high orders. Speedup as the thesis measured it: TTUV with the \
            transport between the subpaths' ends estimated (one point-to-point sample) / TTUV predicted. Against full BDPT: \
            TTUV of BDPT's high orders (all strategies, MIS) / TTUV predicted. Against path tracing: TTUV of path-traced full \
-           transport / TTUV of the prediction's full image. Below 1 the other method wins.\n\n\
-           | config | model | k | TTUV estimated | TTUV predicted | speedup | thesis | TTUV BDPT high | vs BDPT | vs path tracing |\n\
-           |---|---|---|---|---|---|---|---|---|---|\n";
+           transport / TTUV of the prediction's full image. Below 1 the other method wins. The speedup splits into two \
+           factors: the variance ratio (estimated / predicted, per sample: what the speedup would be if a prediction \
+           cost what one point-to-point sample costs) times the time ratio (seconds estimated / predicted, same spp).\n\n\
+           | config | model | k | TTUV estimated | TTUV predicted | speedup | = variance ratio | x time ratio | thesis | TTUV BDPT high | vs BDPT | vs path tracing |\n\
+           |---|---|---|---|---|---|---|---|---|---|---|---|\n";
     for c in cells {
         md += &format!(
-            "| {} | {} | {} | {:.3e} | {:.3e} | {:.2}x | {}x | {:.3e} | {:.3}x | {:.3}x |\n",
+            "| {} | {} | {} | {:.3e} | {:.3e} | {:.2}x | {:.2} | {:.2} | {}x | {:.3e} | {:.3}x | {:.3}x |\n",
             c.config,
             c.model,
             c.k,
             c.ttuv_estimated_high,
             c.ttuv_pred_high,
             c.speedup_thesis,
+            c.variance_ratio,
+            c.secs_estimated / c.secs_pred.max(1e-9),
             thesis(&THESIS_SPEEDUP, &c.model, &c.config, c.k),
             c.ttuv_bdpt_high,
             c.speedup,

@@ -229,10 +229,18 @@ pub struct RenderDesc {
     /// predicted. Default 0.08 (the thesis's, about two mean free paths at rho = 25).
     #[serde(skip_serializing_if = "is_default_r")]
     pub r: f32,
+    /// Light subpaths offered to each camera end vertex in BDPT prediction, one chosen
+    /// by resampling. Default 8; 1 is the thesis's pairing (see engine::bdpt).
+    #[serde(skip_serializing_if = "is_default_candidates")]
+    pub candidates: u32,
 }
 
 fn is_default_r(r: &f32) -> bool {
     *r == engine::bdpt::Prediction::DEFAULT_R
+}
+
+fn is_default_candidates(m: &u32) -> bool {
+    *m == engine::bdpt::Prediction::DEFAULT_CANDIDATES
 }
 
 fn is_path(s: &str) -> bool {
@@ -248,6 +256,7 @@ impl Default for RenderDesc {
             integrator: "path".into(),
             p2p_model: None,
             r: engine::bdpt::Prediction::DEFAULT_R,
+            candidates: engine::bdpt::Prediction::DEFAULT_CANDIDATES,
         }
     }
 }
@@ -422,6 +431,10 @@ impl SceneFile {
         }
         if !(self.render.r >= 0.0) {
             return Err(range_err("render.r", self.render.r, "[0, infinity]"));
+        }
+        const _: () = assert!(engine::bdpt::Prediction::MAX_CANDIDATES == 256, "the message below");
+        if !(1..=engine::bdpt::Prediction::MAX_CANDIDATES).contains(&self.render.candidates) {
+            return Err(range_err("render.candidates", self.render.candidates, "1 ..= 256"));
         }
         Ok(())
     }
@@ -640,8 +653,9 @@ impl SceneFile {
             },
         };
         let warning = bound.mismatch(&scene.medium);
-        let integrator =
-            Integrator::bdpt_prediction(self.settings(), Default::default(), bound, self.render.r).map_err(err)?;
+        let integrator = Integrator::bdpt_prediction(self.settings(), Default::default(), bound, self.render.r)
+            .and_then(|i| i.with_light_candidates(self.render.candidates))
+            .map_err(err)?;
         Ok(IntegratorSetup { integrator, warning })
     }
 }
@@ -716,8 +730,15 @@ mod tests {
         let setup = s.integrator(&scene, 16).unwrap();
         assert!(setup.warning.is_none(), "{:?}", setup.warning);
         let pr = setup.integrator.transport_prediction().expect("BDPT prediction");
-        assert_eq!((pr.segments, pr.first_predicted_order()), (2, 5));
+        assert_eq!(
+            (pr.segments, pr.first_predicted_order(), pr.candidates),
+            (2, 5, engine::bdpt::Prediction::DEFAULT_CANDIDATES)
+        );
         assert!(pr.predictor.name().contains("point-to-point"), "{}", pr.predictor.name());
+        let mut many = s.clone();
+        many.render.candidates = 3;
+        let setup = many.integrator(&scene, 16).unwrap();
+        assert_eq!(setup.integrator.transport_prediction().unwrap().candidates, 3);
         let mut other = s.clone();
         other.medium.albedo = 0.8;
         let warn = other.integrator(&other.build_scene(None).unwrap(), 16).unwrap().warning.unwrap();
@@ -738,6 +759,9 @@ mod tests {
         let mut bad = s.clone();
         bad.render.r = -1.0;
         assert!(bad.validate().unwrap_err().to_string().contains("render.r"));
+        bad.render.r = 0.08;
+        bad.render.candidates = 0;
+        assert!(bad.validate().unwrap_err().to_string().contains("render.candidates"));
     }
 
     #[test]

@@ -171,9 +171,26 @@ impl Integrator {
             return Err(IntegratorError::BadK(settings.k));
         }
         b.validate().map_err(IntegratorError::BadBdpt)?;
-        let prediction = crate::bdpt::Prediction { predictor, segments: settings.k, r, p };
+        let prediction = crate::bdpt::Prediction {
+            predictor,
+            segments: settings.k,
+            r,
+            p,
+            candidates: crate::bdpt::Prediction::DEFAULT_CANDIDATES,
+        };
         prediction.validate().map_err(IntegratorError::BadBdpt)?;
         Ok(Integrator { settings, predictor: None, technique: Technique::Bdpt(b), transport: Some(prediction) })
+    }
+
+    /// BDPT prediction with `m` light subpath candidates per camera end vertex (see
+    /// [`crate::bdpt::Prediction::candidates`]); an error outside prediction mode.
+    pub fn with_light_candidates(mut self, m: u32) -> Result<Self, IntegratorError> {
+        let Some(pr) = self.transport.as_mut() else {
+            return Err(IntegratorError::BadBdpt("light subpath candidates need BDPT's prediction mode".into()));
+        };
+        pr.candidates = m;
+        pr.validate().map_err(IntegratorError::BadBdpt)?;
+        Ok(self)
     }
 
     /// The same integrator with another light transport algorithm.

@@ -146,8 +146,15 @@ impl engine::TransportPredictor for BiasedTransport {
 }
 
 fn predicting(seed: u64, k: u32, r: f32, p: f32) -> Integrator {
+    predicting_with(seed, k, r, p, 1)
+}
+
+/// With `m` light subpath candidates per camera end vertex.
+fn predicting_with(seed: u64, k: u32, r: f32, p: f32, m: u32) -> Integrator {
     let settings = RenderSettings { seed, k, mode: engine::Mode::Predict { p }, ..Default::default() };
     Integrator::bdpt_prediction(settings, Default::default(), std::sync::Arc::new(ExactTransport::default()), r)
+        .unwrap()
+        .with_light_candidates(m)
         .unwrap()
 }
 
@@ -155,15 +162,22 @@ fn predicting(seed: u64, k: u32, r: f32, p: f32) -> Integrator {
 /// the transport between the end vertices into high) with an exact predictor agrees
 /// with the path tracer split at 2k + 1: most pairs predicted (r = 0.1), all pairs
 /// extended (r = infinity), and a mix (r = 0.3, about two mean free paths at the
-/// cloud's mean density here), for k = 1 and 2, with p < 1.
+/// cloud's mean density here), for k = 1 and 2, with p < 1; and with 8 and 3 light
+/// subpath candidates per camera end vertex (resampled pairing).
 #[test]
 fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
     let scene = scene(0.0);
     let passes = std::env::var("BDPT_PASSES").ok().and_then(|v| v.parse().ok()).unwrap_or(6000);
-    let runs = [(1u32, 0.1f32, 0.5f32), (1, f32::INFINITY, 1.0), (2, 0.3, 0.5)];
+    let runs = [
+        (1u32, 0.1f32, 0.5f32, 1u32),
+        (1, f32::INFINITY, 1.0, 1),
+        (2, 0.3, 0.5, 1),
+        (1, 0.1, 1.0, 8),
+        (2, 0.3, 0.5, 3),
+    ];
     let mut checks = vec![];
-    for (i, &(k, r, p)) in runs.iter().enumerate() {
-        let integ = predicting(60 + i as u64, k, r, p);
+    for (i, &(k, r, p, m)) in runs.iter().enumerate() {
+        let integ = predicting_with(60 + i as u64, k, r, p, m);
         assert_eq!(integ.high_order_start(), 2 * k + 1);
         let pt = averages(
             &scene,
@@ -172,7 +186,7 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
         );
         let bd = averages(&scene, &integ, passes);
         for (b, name) in [(1, "low"), (2, "high")] {
-            checks.push((format!("k {k} r {r} p {p} {name}"), z(&bd[b], &pt[b]), bd[b].mean, pt[b].mean));
+            checks.push((format!("k {k} r {r} p {p} m {m} {name}"), z(&bd[b], &pt[b]), bd[b].mean, pt[b].mean));
         }
     }
     // The mixed run really takes both branches.
@@ -225,7 +239,7 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
 #[test]
 fn deferred_predictions_match_immediate_ones() {
     let scene = scene(0.0);
-    let integ = predicting(9, 1, 0.1, 0.5);
+    let integ = predicting_with(9, 1, 0.1, 0.5, 4);
     let cam = &scene.camera;
     let (w, h) = (cam.width(), cam.height());
     let (mut deferred, mut batched, mut immediate) = (Vec::new(), Vec::new(), Vec::new());

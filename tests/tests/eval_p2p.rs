@@ -1,7 +1,7 @@
 //! `nimbus eval p2p` end to end on a small study (scene A backlit, 32x32, k = 1, 2,
 //! the shipped model as "single" and, by its file, as "multi"): tables and sheets
-//! are written, the prediction lands near BDPT's high orders, a rerun resumes from
-//! the cache, and a missing model is named.
+//! are written, the prediction lands near BDPT's high orders, with light subpath
+//! candidates too, a rerun resumes from the cache, and a missing model is named.
 
 use app::eval_p2p::{EvalP2pArgs, eval_p2p};
 use std::path::PathBuf;
@@ -19,6 +19,7 @@ fn args(out: PathBuf) -> EvalP2pArgs {
         spp: 256,
         p: 1.0,
         r: 0.08,
+        candidates: 1,
         cloud: "scene-a".into(),
         res: 64,
         model: None,
@@ -60,6 +61,19 @@ fn small_p2p_evaluation_runs_end_to_end() {
             assert!((a - b).abs() <= 1e-12 * a.abs(), "{a} vs {b}");
         }
     }
+    // Light subpath candidates: their own renders (the references reused), the same
+    // answer within the same tolerance.
+    let mut m4 = args(out.clone());
+    m4.k = vec![1];
+    m4.candidates = 4;
+    let resampled = eval_p2p(&m4).unwrap();
+    assert_eq!(resampled.len(), 2);
+    for c in &resampled {
+        assert!(c.rel_bias < 0.6, "4 candidates: relative bias {} (noise floor {})", c.rel_bias, c.rel_noise_floor);
+        assert!(c.variance_ratio > 0.0 && c.secs_estimated > 0.0, "{c:?}");
+    }
+    assert!(resampled[0].ttuv_pred_high != cells[0].ttuv_pred_high);
+    assert_eq!(resampled[0].ttuv_bdpt_high, cells[0].ttuv_bdpt_high, "the reference is shared");
     let mut bad = args(out.clone());
     bad.multi_model = Some(out.join("no-such-model.safetensors"));
     let e = format!("{:#}", eval_p2p(&bad).unwrap_err());

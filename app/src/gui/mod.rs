@@ -675,6 +675,16 @@ impl NimbusApp {
                         .on_hover_text(
                             "end vertices closer than r are joined by extending the subpaths, not predicted",
                         );
+                    let max_m = engine::bdpt::Prediction::MAX_CANDIDATES.min(64);
+                    ui.add(
+                        egui::Slider::new(&mut self.scene.render.candidates, 1..=max_m)
+                            .logarithmic(true)
+                            .text("light subpath candidates"),
+                    )
+                    .on_hover_text(
+                        "light subpaths offered to each camera end vertex, one chosen by resampling; 1 is the \
+                         thesis's pairing, more lowers the noise at the cost of tracing them",
+                    );
                 }
                 ui.checkbox(&mut self.compare, "compare with path tracing")
                     .on_hover_text("reference and prediction side by side, with the low, high and error buffers");
