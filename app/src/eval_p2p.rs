@@ -148,6 +148,33 @@ pub struct P2pCell {
     /// secs_estimated / secs_pred.
     #[serde(default)]
     pub variance_ratio: f64,
+    /// Seconds of the same subpaths with a free (zero-cost) predictor.
+    #[serde(default)]
+    pub secs_free: f64,
+    /// The speedup against the baseline a free network would reach:
+    /// variance_ratio x secs_estimated / secs_free.
+    #[serde(default)]
+    pub free_ceiling: f64,
+}
+
+/// A predictor that answers 0 at no cost. Its render traces the same subpaths as the
+/// prediction and the estimated baseline, so its time is what a free network would
+/// take: the ceiling of the speedup against the baseline is the variance ratio times
+/// seconds estimated / seconds free. (Its image is not used: 0 - T_1 is no estimate.)
+struct FreeTransport;
+
+impl engine::TransportPredictor for FreeTransport {
+    fn predict(&self, _: &engine::Medium, _: &engine::p2p::P2pQuery, _: &mut engine::Rng) -> f32 {
+        0.0
+    }
+
+    fn predict_batch(&self, _: &engine::Medium, _: &[engine::p2p::P2pQuery], _: &mut [engine::Rng], out: &mut [f32]) {
+        out.fill(0.0);
+    }
+
+    fn name(&self) -> &str {
+        "free transport (timing only)"
+    }
 }
 
 fn scene_file(args: &EvalP2pArgs, config: &str) -> Result<SceneFile> {
@@ -258,7 +285,7 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
     let cache = args.out.join("cache");
     std::fs::create_dir_all(&cache).with_context(|| format!("cannot create {}", cache.display()))?;
     let per_config =
-        args.spp_ref as u64 * (1 + args.k.len() as u64) + args.spp as u64 * (args.k.len() * (1 + models.len())) as u64;
+        args.spp_ref as u64 * (1 + args.k.len() as u64) + args.spp as u64 * (args.k.len() * (2 + models.len())) as u64;
     let bar = progress_bar(per_config * args.configs.len() as u64, "spp", args.quiet);
     eprintln!(
         "point-to-point evaluation: {} at {}x{}, configs {:?}, k {:?}, {} spp references, {} spp predictions, {} threads",
@@ -337,6 +364,26 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
             )?;
             done += args.spp as u64;
             let ttuv_base = ttuv(&base_img[0].var, &mask, base_meta.seconds);
+            let start = done;
+            let (_, free_meta) = cached(
+                &cache,
+                &format!("{tag}_free_k{k}_p{}_r{}{m}_spp{}", args.p, args.r, args.spp),
+                &scene,
+                &mut || {
+                    Ok(Integrator::bdpt_prediction(
+                        pred.settings(),
+                        Default::default(),
+                        Arc::new(FreeTransport),
+                        args.r,
+                    )?
+                    .with_light_candidates(args.candidates)?)
+                },
+                args.spp,
+                &[Buffer::High],
+                &control,
+                &|n| step(n, start),
+            )?;
+            done += args.spp as u64;
             let mut row = vec![];
             for (mi, (name, path, id)) in models.iter().enumerate() {
                 pred.render.p2p_model =
@@ -363,6 +410,12 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                 let (b, rb, floor) = bias(ref_high, high);
                 let ttuv_pred = ttuv(&high.var, &mask, meta.seconds);
                 let ttuv_pred_full = ttuv(&full.var, &nonempty(&pt_img[0].mean), meta.seconds);
+                // Per-sample variance, estimated over predicted (same spp).
+                let variance_ratio = if ttuv_pred > 0.0 {
+                    (ttuv_base / base_meta.seconds.max(1e-9)) / (ttuv_pred / meta.seconds.max(1e-9))
+                } else {
+                    f64::INFINITY
+                };
                 let cell = P2pCell {
                     config: config.clone(),
                     model: name.clone(),
@@ -383,11 +436,9 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                     secs_ref: ref_meta.seconds,
                     secs_pred: meta.seconds,
                     secs_estimated: base_meta.seconds,
-                    variance_ratio: if ttuv_pred > 0.0 {
-                        (ttuv_base / base_meta.seconds.max(1e-9)) / (ttuv_pred / meta.seconds.max(1e-9))
-                    } else {
-                        f64::INFINITY
-                    },
+                    variance_ratio,
+                    secs_free: free_meta.seconds,
+                    free_ceiling: variance_ratio * base_meta.seconds / free_meta.seconds.max(1e-9),
                 };
                 if !args.quiet {
                     bar.println(format!(
@@ -446,11 +497,11 @@ fn write_sheet(path: &Path, size: u32, rows: &[(Vec<[f32; 3]>, Vec<Vec<[f32; 3]>
 
 fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()> {
     let mut csv = String::from(
-        "config,model,k,mae,bias,rel_bias,rel_noise_floor,rel_bias_estimated,ttuv_bdpt_high,ttuv_estimated_high,ttuv_pred_high,speedup_thesis,speedup,ttuv_pt_full,ttuv_pred_full,vs_path_tracing,secs_ref,secs_pred,secs_estimated,variance_ratio\n",
+        "config,model,k,mae,bias,rel_bias,rel_noise_floor,rel_bias_estimated,ttuv_bdpt_high,ttuv_estimated_high,ttuv_pred_high,speedup_thesis,speedup,ttuv_pt_full,ttuv_pred_full,vs_path_tracing,secs_ref,secs_pred,secs_estimated,variance_ratio,secs_free,free_ceiling\n",
     );
     for c in cells {
         csv += &format!(
-            "{},{},{},{:.6e},{:.6e},{:.5},{:.5},{:.5},{:.6e},{:.6e},{:.6e},{:.4},{:.4},{:.6e},{:.6e},{:.5},{:.2},{:.2},{:.2},{:.4}\n",
+            "{},{},{},{:.6e},{:.6e},{:.5},{:.5},{:.5},{:.6e},{:.6e},{:.6e},{:.4},{:.4},{:.6e},{:.6e},{:.5},{:.2},{:.2},{:.2},{:.4},{:.2},{:.4}\n",
             c.config,
             c.model,
             c.k,
@@ -470,7 +521,9 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
             c.secs_ref,
             c.secs_pred,
             c.secs_estimated,
-            c.variance_ratio
+            c.variance_ratio,
+            c.secs_free,
+            c.free_ceiling
         );
     }
     write_bytes_atomically(&out.join("p2p.csv"), csv.as_bytes())?;
@@ -512,12 +565,14 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
            TTUV of BDPT's high orders (all strategies, MIS) / TTUV predicted. Against path tracing: TTUV of path-traced full \
            transport / TTUV of the prediction's full image. Below 1 the other method wins. The speedup splits into two \
            factors: the variance ratio (estimated / predicted, per sample: what the speedup would be if a prediction \
-           cost what one point-to-point sample costs) times the time ratio (seconds estimated / predicted, same spp).\n\n\
-           | config | model | k | TTUV estimated | TTUV predicted | speedup | = variance ratio | x time ratio | thesis | TTUV BDPT high | vs BDPT | vs path tracing |\n\
-           |---|---|---|---|---|---|---|---|---|---|---|---|\n";
+           cost what one point-to-point sample costs) times the time ratio (seconds estimated / predicted, same spp). \
+           Free-network ceiling: the variance ratio times seconds estimated / seconds of the same subpaths with a \
+           zero-cost predictor, the speedup no network can beat.\n\n\
+           | config | model | k | TTUV estimated | TTUV predicted | speedup | = variance ratio | x time ratio | free-network ceiling | thesis | TTUV BDPT high | vs BDPT | vs path tracing |\n\
+           |---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
     for c in cells {
         md += &format!(
-            "| {} | {} | {} | {:.3e} | {:.3e} | {:.2}x | {:.2} | {:.2} | {}x | {:.3e} | {:.3}x | {:.3}x |\n",
+            "| {} | {} | {} | {:.3e} | {:.3e} | {:.2}x | {:.2} | {:.2} | {:.2}x | {}x | {:.3e} | {:.3}x | {:.3}x |\n",
             c.config,
             c.model,
             c.k,
@@ -526,6 +581,7 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
             c.speedup_thesis,
             c.variance_ratio,
             c.secs_estimated / c.secs_pred.max(1e-9),
+            c.free_ceiling,
             thesis(&THESIS_SPEEDUP, &c.model, &c.config, c.k),
             c.ttuv_bdpt_high,
             c.speedup,

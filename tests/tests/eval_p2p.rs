@@ -71,6 +71,7 @@ fn small_p2p_evaluation_runs_end_to_end() {
     for c in &resampled {
         assert!(c.rel_bias < 0.6, "4 candidates: relative bias {} (noise floor {})", c.rel_bias, c.rel_noise_floor);
         assert!(c.variance_ratio > 0.0 && c.secs_estimated > 0.0, "{c:?}");
+        assert!(c.secs_free > 0.0 && c.free_ceiling.is_finite() && c.free_ceiling > 0.0, "{c:?}");
     }
     assert!(resampled[0].ttuv_pred_high != cells[0].ttuv_pred_high);
     assert_eq!(resampled[0].ttuv_bdpt_high, cells[0].ttuv_bdpt_high, "the reference is shared");
