@@ -347,43 +347,31 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
             let mut pred = base.clone();
             pred.render.mode = "predict".into();
             pred.k = k;
-            let start = done;
-            let (base_img, base_meta) = cached(
-                &cache,
-                &format!("{tag}_estimated_k{k}_p{}_r{}{m}_spp{}", args.p, args.r, args.spp),
-                &scene,
-                &mut || {
-                    let estimator = Arc::new(engine::p2p::EstimatedTransport::default());
-                    Ok(Integrator::bdpt_prediction(pred.settings(), Default::default(), estimator, args.r)?
-                        .with_light_candidates(args.candidates)?)
-                },
-                args.spp,
-                &[Buffer::High],
-                &control,
-                &|n| step(n, start),
-            )?;
-            done += args.spp as u64;
+            // The same subpaths with another transport between their ends, not a model.
+            let mut with_transport = |name: &str,
+                                      transport: Arc<dyn engine::TransportPredictor>|
+             -> Result<(Vec<Image>, RenderMeta)> {
+                let start = done;
+                let out = cached(
+                    &cache,
+                    &format!("{tag}_{name}_k{k}_p{}_r{}{m}_spp{}", args.p, args.r, args.spp),
+                    &scene,
+                    &mut || {
+                        Ok(Integrator::bdpt_prediction(pred.settings(), Default::default(), transport.clone(), args.r)?
+                            .with_light_candidates(args.candidates)?)
+                    },
+                    args.spp,
+                    &[Buffer::High],
+                    &control,
+                    &|n| step(n, start),
+                )?;
+                done += args.spp as u64;
+                Ok(out)
+            };
+            let (base_img, base_meta) =
+                with_transport("estimated", Arc::new(engine::p2p::EstimatedTransport::default()))?;
             let ttuv_base = ttuv(&base_img[0].var, &mask, base_meta.seconds);
-            let start = done;
-            let (_, free_meta) = cached(
-                &cache,
-                &format!("{tag}_free_k{k}_p{}_r{}{m}_spp{}", args.p, args.r, args.spp),
-                &scene,
-                &mut || {
-                    Ok(Integrator::bdpt_prediction(
-                        pred.settings(),
-                        Default::default(),
-                        Arc::new(FreeTransport),
-                        args.r,
-                    )?
-                    .with_light_candidates(args.candidates)?)
-                },
-                args.spp,
-                &[Buffer::High],
-                &control,
-                &|n| step(n, start),
-            )?;
-            done += args.spp as u64;
+            let (_, free_meta) = with_transport("free", Arc::new(FreeTransport))?;
             let mut row = vec![];
             for (mi, (name, path, id)) in models.iter().enumerate() {
                 pred.render.p2p_model =
