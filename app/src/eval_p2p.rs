@@ -555,7 +555,7 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
            factors: the variance ratio (estimated / predicted, per sample: what the speedup would be if a prediction \
            cost what one point-to-point sample costs) times the time ratio (seconds estimated / predicted, same spp). \
            Free-network ceiling: the variance ratio times seconds estimated / seconds of the same subpaths with a \
-           zero-cost predictor, the speedup no network can beat.\n\n\
+           zero-cost predictor: the speedup a free network with the same variance would reach.\n\n\
            | config | model | k | TTUV estimated | TTUV predicted | speedup | = variance ratio | x time ratio | free-network ceiling | thesis | TTUV BDPT high | vs BDPT | vs path tracing |\n\
            |---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
     for c in cells {

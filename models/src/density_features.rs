@@ -59,8 +59,16 @@ impl Level {
         let f = u.floor();
         let (x, y, z) = (f.x as i64, f.y as i64, f.z as i64);
         let [nx, ny, nz] = self.dims;
-        // (NaN casts to 0 but fails the comparisons below through u.)
-        (u.is_finite() && x >= 0 && y >= 0 && z >= 0 && x + 1 < nx as i64 && y + 1 < ny as i64 && z + 1 < nz as i64)
+        // (NaN or huge u casts to a meaningless index, but fails the range check on u
+        // before any index arithmetic could overflow.)
+        (u.is_finite()
+            && u.abs().max_element() < 1e9
+            && x >= 0
+            && y >= 0
+            && z >= 0
+            && x + 1 < nx as i64
+            && y + 1 < ny as i64
+            && z + 1 < nz as i64)
             .then(|| (x as usize + nx * (y as usize + ny * z as usize), u - f))
     }
 
@@ -103,7 +111,8 @@ impl Level {
         }
         // The border and outside: per-voxel checks.
         let u = (p - self.origin) / self.h - 0.5;
-        if !u.is_finite() {
+        // Not finite, or so far out that the index arithmetic could overflow: outside.
+        if !(u.is_finite() && u.abs().max_element() < 1e9) {
             return 0.0;
         }
         let f = u.floor();
@@ -577,6 +586,8 @@ mod tests {
         let mut points: Vec<Vec3> =
             (0..75).map(|_| (Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5) * 1.3).collect();
         points[7] = Vec3::NAN;
+        // Far enough out that index arithmetic on it would overflow: outside, 0.
+        points[8] = Vec3::splat(1e30);
         for std in [0.001, 0.05, 0.07, 0.3, 5.0] {
             let sel = pyramid.select(std);
             let mut many = vec![f32::NAN; points.len()];

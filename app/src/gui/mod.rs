@@ -675,7 +675,7 @@ impl NimbusApp {
                         .on_hover_text(
                             "end vertices closer than r are joined by extending the subpaths, not predicted",
                         );
-                    let max_m = engine::bdpt::Prediction::MAX_CANDIDATES.min(64);
+                    let max_m = engine::bdpt::Prediction::MAX_CANDIDATES;
                     ui.add(
                         egui::Slider::new(&mut self.scene.render.candidates, 1..=max_m)
                             .logarithmic(true)
