@@ -125,7 +125,7 @@ pub struct RenderArgs {
     #[arg(long)]
     pub r: Option<f32>,
     /// Light subpaths offered to each camera end vertex in BDPT prediction, one
-    /// chosen by resampling (default 8; 1 is the thesis's pairing).
+    /// chosen by resampling (default 256, picked from the pass's pool; 1 is the thesis's pairing).
     #[arg(long)]
     pub candidates: Option<u32>,
 }

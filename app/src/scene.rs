@@ -432,9 +432,9 @@ impl SceneFile {
         if !(self.render.r >= 0.0) {
             return Err(range_err("render.r", self.render.r, "[0, infinity]"));
         }
-        const _: () = assert!(engine::bdpt::Prediction::MAX_CANDIDATES == 256, "the message below");
+        const _: () = assert!(engine::bdpt::Prediction::MAX_CANDIDATES == 4096, "the message below");
         if !(1..=engine::bdpt::Prediction::MAX_CANDIDATES).contains(&self.render.candidates) {
-            return Err(range_err("render.candidates", self.render.candidates, "1 ..= 256"));
+            return Err(range_err("render.candidates", self.render.candidates, "1 ..= 4096"));
         }
         Ok(())
     }

@@ -242,7 +242,7 @@ fn export_writes_files() {
     use app::gui::Target;
     let dir = std::env::temp_dir().join(format!("nimbus-gui-export-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let (mut h, mut s) = small_scene(24, 16, 24);
+    let (mut h, s) = small_scene(24, 16, 24);
     h.state_mut().set_scene(s);
     step_until(&mut h, "the worker did not render", |a| a.rendered().is_some_and(|r| r.1 >= 2));
     for (target, name) in

@@ -64,10 +64,18 @@
 //! - **Light subpath candidates** (`Prediction::candidates`, M). Joining each camera
 //!   end vertex to the end of one random light subpath is a weak estimator: most
 //!   pairs are far apart and carry almost nothing, a few near ones carry much. With
-//!   M > 1 the camera end vertex is offered M independent light subpaths (its own
-//!   and M - 1 more, k segments each) and one is chosen by resampled importance
-//!   sampling on the unoccluded one-segment term with its distance clamped at r, so
-//!   one prediction still serves one camera sample (`predict_high`).
+//!   M > 1 the camera end vertex is offered M light subpaths (its own and M - 1
+//!   more, k segments each) and one is chosen by resampled importance sampling on
+//!   the unoccluded one-segment term with its distance clamped at r, so one
+//!   prediction still serves one camera sample (`predict_high`). The renderer traces
+//!   one pool of light subpaths per pass ([`LightPool`], one per pixel) and the M - 1
+//!   are uniform picks from it, so a candidate costs a weight, not a subpath, and M
+//!   can be large (default 256). Every candidate is still distributed as a sample's
+//!   own subpath, so the estimate stays unbiased; what sharing costs is correlation:
+//!   the samples of one pass share candidates, so their errors are not independent
+//!   within the pass (passes are). With a pool no larger than M - 1 every subpath in
+//!   it is taken once; without a pool (single samples outside the renderer) each
+//!   candidate is a subpath of its own.
 //! - **Batched predictions.** The renderer defers a tile's predictions
 //!   ([`DeferredPrediction`], each with its own random stream) and asks the predictor
 //!   for them at once ([`TransportPredictor::predict_batch`]), so that a network
@@ -160,13 +168,17 @@ impl std::fmt::Debug for Prediction {
 impl Prediction {
     /// The thesis's distance threshold (0.08, about two mean free paths at rho = 25).
     pub const DEFAULT_R: f32 = 0.08;
-    /// Light subpath candidates per camera end vertex by default. Measured on scene A
-    /// at rho 25 (`nimbus eval p2p --size 64 --k 1,2,4 --candidates M`, M = 1, 4, 8,
-    /// 16): M = 8 beat M = 1 in five of six cells (3.5x and 10x lower TTUV at k = 1)
-    /// and was within 1.5x of the best M in five (README).
-    pub const DEFAULT_CANDIDATES: u32 = 8;
+    /// Light subpath candidates per camera end vertex by default. Picked from the
+    /// pass's pool, a candidate costs a weight, not a subpath. Measured on scene A at
+    /// rho 25 (`nimbus eval p2p --size 64 --spp-ref 1024 --spp 256 --k 1,2,4
+    /// --candidates M`, M = 8, 64, 256, 1024, backlit and frontlit): high-order TTUV
+    /// fell with M up to 256 in all six cells, at M = 256 4.8-7.3x below the earlier
+    /// default (8 candidates, each a subpath of its own); M = 1024 was within
+    /// run-to-run scatter of 256 (1.4x better at backlit k = 1, 1.5x worse at k = 2,
+    /// the same elsewhere) and takes 20 % longer (README).
+    pub const DEFAULT_CANDIDATES: u32 = 256;
     /// At most this many candidates.
-    pub const MAX_CANDIDATES: u32 = 256;
+    pub const MAX_CANDIDATES: u32 = 4096;
 
     /// The first order the high buffer holds: 2k + 1.
     pub fn first_predicted_order(&self) -> u32 {
@@ -382,20 +394,81 @@ fn light_path(b: &BdptSettings, scene: &Scene, sun: &crate::light::Sun, rng: &mu
     }
 }
 
+/// The end vertices of light subpaths that the camera samples of one pass share as
+/// resampling candidates in prediction mode (module documentation, "light subpath
+/// candidates"). Each subpath is traced like a sample's own, k segments, with a
+/// random stream of its own and independently of every camera sample, so a uniform
+/// pick from the pool is distributed as an own subpath's end; a subpath that ends
+/// early (absorbed, escaped, roulette) stays in the count as a candidate of weight 0.
+#[derive(Clone, Debug, Default)]
+pub struct LightPool {
+    /// End vertices of the subpaths that reached k segments, with their beam area.
+    ends: Vec<(Vertex, f32)>,
+    /// Subpaths traced, the failed ones included.
+    traced: u32,
+}
+
+impl LightPool {
+    /// Traces `n` light subpaths of `pr.segments` segments in parallel, subpath i
+    /// with the stream `stream(i)`, so the pool does not depend on the thread count
+    /// (empty without a sun).
+    pub fn trace(
+        b: &BdptSettings,
+        pr: &Prediction,
+        scene: &Scene,
+        n: u32,
+        stream: impl Fn(u32) -> Rng + Sync,
+    ) -> LightPool {
+        use rayon::prelude::*;
+        let Some(sun) = &scene.sun else { return LightPool::default() };
+        let capped = BdptSettings { max_light_vertices: pr.segments, ..*b };
+        let k = pr.segments as usize;
+        let ends = (0..n)
+            .into_par_iter()
+            .with_min_len(64)
+            .filter_map(|i| {
+                let lp = light_path(&capped, scene, sun, &mut stream(i));
+                (lp.len == k).then(|| (lp.verts[k - 1], lp.area))
+            })
+            .collect();
+        LightPool { ends, traced: n }
+    }
+
+    /// Subpaths traced (the failed ones included).
+    pub fn len(&self) -> usize {
+        self.traced as usize
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.traced == 0
+    }
+
+    /// A uniformly chosen subpath's end vertex and beam area, or None if the chosen
+    /// one ended early (or the pool is empty).
+    fn pick(&self, rng: &mut Rng) -> Option<(Vertex, f32)> {
+        if self.traced == 0 {
+            return None;
+        }
+        let i = ((rng.uniform() * self.traced as f32) as usize).min(self.traced as usize - 1);
+        self.ends.get(i).copied()
+    }
+}
+
 /// The high orders of one camera sample in prediction mode, at camera end vertex x
 /// (leaving toward `wo`, throughput `beta`); `lp` is the sample's light subpath and
 /// `t1_own` the one-segment term x <-> its end vertex already estimated for the low
 /// buffer (the path of order 2k, which BDPT makes).
 ///
 /// The end vertex y is chosen among the sample's own light subpath and
-/// `candidates - 1` independent ones by resampled importance sampling: candidate j
+/// `candidates - 1` more (picks from `pool`, or subpaths of their own without one)
+/// by resampled importance sampling: candidate j
 /// with probability w_j / sum w, w_j = beta_j A f_p(wo, y_j) f_p(y_j) / max(d_j^2, r^2)
 /// (the unoccluded one-segment term, its distance clamped at r), weighted
 /// sum w / (M w_j). That is the M-candidate average of the thesis's estimator, so it
 /// stays unbiased for any M, while pairs whose transport is large (near ones) are
 /// picked more often than pairs it is small for: the pairing's variance, which
-/// dominates frontlit, falls at the cost of M - 1 light subpaths (k segments each),
-/// not M predictions.
+/// dominates frontlit, falls at the cost of M - 1 weights (with a pool) or light
+/// subpaths (without), not M predictions.
 #[allow(clippy::too_many_arguments)]
 fn predict_high(
     pr: &Prediction,
@@ -408,6 +481,7 @@ fn predict_high(
     beta: f32,
     t1_own: f32,
     rng: &mut Rng,
+    pool: Option<&LightPool>,
     deferred: Option<&mut Vec<DeferredPrediction>>,
     sink: &mut impl FnMut(Contribution),
 ) {
@@ -418,12 +492,8 @@ fn predict_high(
     // The clamp distance: r, or with r = infinity (every pair extended) the cloud's
     // diagonal, which no pair exceeds (uniform weights but for the phase terms).
     let clamp = pr.r.min(medium.bounds().extent().length()).max(1e-6);
-    // The resampling weight of a light subpath's end vertex (0 if it is shorter).
-    let weight = |l: &LightPath| -> (f32, Vertex) {
-        if l.len != k {
-            return (0.0, Vertex::default());
-        }
-        let y = l.verts[k - 1];
+    // The resampling weight of a light subpath's end vertex y (beam area `area`).
+    let weight_of = |y: &Vertex, area: f32| -> f32 {
         let dv = y.x - x;
         let d2 = dv.length_squared();
         let dir = if d2 > 0.0 { dv / d2.sqrt() } else { wo };
@@ -431,26 +501,63 @@ fn predict_high(
         // (resampling stays unbiased only then): a phase value of 0 on the direct
         // segment leaves the paths that scatter in between.
         let phases = (phase.eval(wo, dir) * phase.eval(y.wo, -dir)).max(1e-3 * INV_4PI * INV_4PI);
-        let w = y.beta * l.area * phases / d2.max(clamp * clamp);
-        (if w.is_finite() { w } else { 0.0 }, y)
+        let w = y.beta * area * phases / d2.max(clamp * clamp);
+        if w.is_finite() { w } else { 0.0 }
+    };
+    // The same for a whole subpath (0 if it is shorter than k).
+    let weight = |l: &LightPath| -> (f32, Vertex) {
+        if l.len != k {
+            return (0.0, Vertex::default());
+        }
+        let y = l.verts[k - 1];
+        (weight_of(&y, l.area), y)
     };
     let (w_own, y_own) = weight(lp);
     let (mut total, mut chosen) = (w_own, (w_own > 0.0).then_some((y_own, lp.area, w_own, true)));
-    for _ in 1..pr.candidates {
-        let other = light_path(b, scene, sun, rng);
-        let (w, y) = weight(&other);
+    // Streaming resampling: keep each newcomer with probability w / total.
+    let mut offer = |w: f32, y: Vertex, area: f32, rng: &mut Rng| {
         if w > 0.0 {
             total += w;
-            // Streaming resampling: keep the newcomer with probability w / total.
             if chosen.is_none() || rng.uniform() * total < w {
-                chosen = Some((y, other.area, w, false));
+                chosen = Some((y, area, w, false));
             }
         }
-    }
+    };
+    // Candidates besides the sample's own subpath, and so M in sum w / (M w_j).
+    let others = pr.candidates as usize - 1;
+    let m = match pool {
+        // A pool no larger than the candidates asked for: every subpath in it once
+        // (each is distributed as an own subpath, so M counts them all, the failed
+        // ones, shorter than k, included with weight 0).
+        Some(pool) if others >= pool.len() => {
+            for &(y, area) in &pool.ends {
+                offer(weight_of(&y, area), y, area, rng);
+            }
+            1 + pool.len()
+        }
+        // Otherwise uniform picks from it, with replacement.
+        Some(pool) => {
+            for _ in 0..others {
+                if let Some((y, area)) = pool.pick(rng) {
+                    offer(weight_of(&y, area), y, area, rng);
+                }
+            }
+            pr.candidates as usize
+        }
+        // Without a pool, a subpath of its own for each candidate.
+        None => {
+            for _ in 0..others {
+                let other = light_path(b, scene, sun, rng);
+                let (w, y) = weight(&other);
+                offer(w, y, other.area, rng);
+            }
+            pr.candidates as usize
+        }
+    };
     let Some((y, area, w, own)) = chosen else { return };
     let q = P2pQuery { emitter: y.x, omega_e: y.wo, sensor: x, omega_s: wo };
     // With M = 1, total / (M w) = 1: the thesis's estimator.
-    let scale = beta * y.beta * area * (total / (pr.candidates as f32 * w)) / pr.p;
+    let scale = beta * y.beta * area * (total / (m as f32 * w)) / pr.p;
     let dist = (y.x - x).length();
     let (strategy, t_multi) = if dist >= pr.r {
         // The one-segment term to leave out (it is order 2k, in the low buffer): the
@@ -502,6 +609,7 @@ pub fn trace_strategies(
     o: Vec3,
     d: Vec3,
     rng: &mut Rng,
+    pool: Option<&LightPool>,
     mut deferred: Option<&mut Vec<DeferredPrediction>>,
     sink: &mut impl FnMut(Contribution),
 ) {
@@ -600,7 +708,7 @@ pub fn trace_strategies(
             if let Some(pr) = prediction.filter(|pr| order == pr.segments) {
                 let first = pr.first_predicted_order();
                 if first <= max_order && rng.uniform() < pr.p {
-                    predict_high(pr, b, scene, sun, lp, x, wo, beta, t1, rng, deferred.as_deref_mut(), sink);
+                    predict_high(pr, b, scene, sun, lp, x, wo, beta, t1, rng, pool, deferred.as_deref_mut(), sink);
                 }
             }
         }
@@ -683,11 +791,12 @@ pub fn trace(
     o: Vec3,
     d: Vec3,
     rng: &mut Rng,
+    pool: Option<&LightPool>,
     deferred: Option<&mut Vec<DeferredPrediction>>,
 ) -> PathSample {
     let mut out = PathSample::default();
     let k = prediction.map_or(settings.k, Prediction::first_predicted_order);
-    trace_strategies(settings, b, prediction, scene, o, d, rng, deferred, &mut |c| {
+    trace_strategies(settings, b, prediction, scene, o, d, rng, pool, deferred, &mut |c| {
         let v = c.value * c.weight;
         if c.order == 0 {
             out.direct += v;

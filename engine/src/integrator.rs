@@ -248,7 +248,20 @@ impl Integrator {
     /// split by scattering order.
     #[inline]
     pub fn trace(&self, scene: &Scene, o: Vec3, d: Vec3, rng: &mut Rng) -> PathSample {
-        self.trace_deferring(scene, o, d, rng, None)
+        self.trace_deferring(scene, o, d, rng, None, None)
+    }
+
+    /// In BDPT's prediction mode with more than one light subpath candidate: a pool
+    /// of `n` light subpaths for the camera samples of pass `pass` to share as
+    /// candidates (see [`crate::bdpt::LightPool`]); None otherwise. Subpath i has
+    /// the stream (seed, pass, i) of a family apart from the pixels'.
+    pub fn light_pool(&self, scene: &Scene, pass: u32, n: u32) -> Option<crate::bdpt::LightPool> {
+        let (Technique::Bdpt(b), Some(pr)) = (&self.technique, &self.transport) else { return None };
+        if pr.candidates <= 1 || scene.sun.is_none() {
+            return None;
+        }
+        let seed = self.settings.seed ^ 0x4c49_4748_545f_504f;
+        Some(crate::bdpt::LightPool::trace(b, pr, scene, n, |i| Rng::new(seed, pass as u64, i as u64)))
     }
 
     /// [`Integrator::trace`], but in BDPT's prediction mode with `deferred` the
@@ -261,10 +274,11 @@ impl Integrator {
         o: Vec3,
         d: Vec3,
         rng: &mut Rng,
+        pool: Option<&crate::bdpt::LightPool>,
         deferred: Option<&mut Vec<crate::bdpt::DeferredPrediction>>,
     ) -> PathSample {
         if let Technique::Bdpt(b) = &self.technique {
-            return crate::bdpt::trace(&self.settings, b, self.transport.as_ref(), scene, o, d, rng, deferred);
+            return crate::bdpt::trace(&self.settings, b, self.transport.as_ref(), scene, o, d, rng, pool, deferred);
         }
         let mut out = PathSample::default();
         match scene.medium.sample_free_flight(o, d, f32::INFINITY, rng) {

@@ -117,6 +117,10 @@ impl Renderer {
         let camera = &self.scene.camera;
         let (w, h) = (camera.width(), camera.height());
         let seed = self.integrator.settings().seed;
+        // BDPT's prediction mode: the pass's samples share one pool of light subpath
+        // candidates, one subpath per pixel up to 65,536 (2.4 MiB; with more, the
+        // samples that share a candidate are already few).
+        let pool = self.integrator.light_pool(&self.scene, pass, (w * h).min(1 << 16));
         let tiles: Vec<Vec<PathSample>> = self
             .tiles
             .par_iter()
@@ -133,7 +137,14 @@ impl Renderer {
                         let mut rng = Rng::new(seed, pass as u64, pixel);
                         let (o, d) = camera.generate_ray(x, y, Vec2::new(rng.uniform(), rng.uniform()));
                         let first = deferred.len();
-                        out.push(self.integrator.trace_deferring(&self.scene, o, d, &mut rng, Some(&mut deferred)));
+                        out.push(self.integrator.trace_deferring(
+                            &self.scene,
+                            o,
+                            d,
+                            &mut rng,
+                            pool.as_ref(),
+                            Some(&mut deferred),
+                        ));
                         for p in &mut deferred[first..] {
                             p.owner = (out.len() - 1) as u32;
                         }

@@ -14,17 +14,26 @@ use nimbus_tests::cumulus_scene;
 
 /// Per-pass image averages of (direct, low, high) for `passes` passes.
 fn averages(scene: &Scene, integrator: &Integrator, passes: u32) -> [Welford; 3] {
+    averages_pooled(scene, integrator, passes, None)
+}
+
+/// Per-pass image means; with `pool` = Some(n), in prediction mode the pass's
+/// samples share one pool of n light subpath candidates (as in the renderer), so
+/// the samples of a pass are correlated and only the passes are independent draws.
+fn averages_pooled(scene: &Scene, integrator: &Integrator, passes: u32, pool: Option<u32>) -> [Welford; 3] {
     let cam = &scene.camera;
     let (w, h) = (cam.width(), cam.height());
     let seed = integrator.settings().seed;
     let mut out = [Welford::default(); 3];
     for pass in 0..passes {
         let mut sum = [0.0f64; 3];
+        let pooled = pool.and_then(|n| integrator.light_pool(scene, pass, n));
+        assert_eq!(pooled.is_some(), pool.is_some(), "a pool exactly when asked for");
         for y in 0..h {
             for x in 0..w {
                 let mut rng = Rng::new(seed, pass as u64, (y * w + x) as u64);
                 let (o, d) = cam.generate_ray(x, y, Vec2::new(rng.uniform(), rng.uniform()));
-                let s = integrator.trace(scene, o, d, &mut rng);
+                let s = integrator.trace_deferring(scene, o, d, &mut rng, pooled.as_ref(), None);
                 assert!(s.is_finite());
                 for (i, v) in [s.direct, s.low, s.high].iter().enumerate() {
                     sum[i] += (v.x + v.y + v.z) as f64 / 3.0;
@@ -162,21 +171,25 @@ fn predicting_with(seed: u64, k: u32, r: f32, p: f32, m: u32) -> Integrator {
 /// the transport between the end vertices into high) with an exact predictor agrees
 /// with the path tracer split at 2k + 1: most pairs predicted (r = 0.1), all pairs
 /// extended (r = infinity), and a mix (r = 0.3, about two mean free paths at the
-/// cloud's mean density here), for k = 1 and 2, with p < 1; and with 8 and 3 light
-/// subpath candidates per camera end vertex (resampled pairing).
+/// cloud's mean density here), for k = 1 and 2, with p < 1; with 8 and 3 light
+/// subpath candidates per camera end vertex (resampled pairing), each candidate its
+/// own light subpath; and with candidates from a pool the pass's samples share (as
+/// in the renderer): 32 picked from 256 subpaths, and 16 from 12 (all 12 taken).
 #[test]
 fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
     let scene = scene(0.0);
     let passes = std::env::var("BDPT_PASSES").ok().and_then(|v| v.parse().ok()).unwrap_or(6000);
     let runs = [
-        (1u32, 0.1f32, 0.5f32, 1u32),
-        (1, f32::INFINITY, 1.0, 1),
-        (2, 0.3, 0.5, 1),
-        (1, 0.1, 1.0, 8),
-        (2, 0.3, 0.5, 3),
+        (1u32, 0.1f32, 0.5f32, 1u32, None),
+        (1, f32::INFINITY, 1.0, 1, None),
+        (2, 0.3, 0.5, 1, None),
+        (1, 0.1, 1.0, 8, None),
+        (2, 0.3, 0.5, 3, None),
+        (1, 0.1, 1.0, 32, Some(256u32)),
+        (2, 0.3, 0.5, 16, Some(12)),
     ];
     let mut checks = vec![];
-    for (i, &(k, r, p, m)) in runs.iter().enumerate() {
+    for (i, &(k, r, p, m, pool)) in runs.iter().enumerate() {
         let integ = predicting_with(60 + i as u64, k, r, p, m);
         assert_eq!(integ.high_order_start(), 2 * k + 1);
         let pt = averages(
@@ -184,9 +197,11 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
             &integrator(RenderSettings { seed: 70 + i as u64, k: 2 * k + 1, ..Default::default() }, None),
             passes,
         );
-        let bd = averages(&scene, &integ, passes);
+        let bd = averages_pooled(&scene, &integ, passes, pool);
         for (b, name) in [(1, "low"), (2, "high")] {
-            checks.push((format!("k {k} r {r} p {p} m {m} {name}"), z(&bd[b], &pt[b]), bd[b].mean, pt[b].mean));
+            let label =
+                format!("k {k} r {r} p {p} m {m}{} {name}", pool.map_or(String::new(), |n| format!(" pool {n}")));
+            checks.push((label, z(&bd[b], &pt[b]), bd[b].mean, pt[b].mean));
         }
     }
     // The mixed run really takes both branches.
@@ -205,6 +220,7 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
                 o,
                 d,
                 &mut rng,
+                None,
                 None,
                 &mut |c| match c.strategy {
                     engine::bdpt::Strategy::Predicted => predicted += 1,
@@ -254,7 +270,7 @@ fn deferred_predictions_match_immediate_ones() {
             immediate.push(integ.trace(&scene, o, d, &mut rng));
             let (o, d, mut rng) = start();
             let first = deferred.len();
-            batched.push(integ.trace_deferring(&scene, o, d, &mut rng, Some(&mut deferred)));
+            batched.push(integ.trace_deferring(&scene, o, d, &mut rng, None, Some(&mut deferred)));
             for p in &mut deferred[first..] {
                 p.owner = (batched.len() - 1) as u32;
             }
@@ -306,4 +322,32 @@ fn bdpt_settings_are_checked_and_results_repeat() {
     let a = averages(&scene, &bd, 3);
     let b = averages(&scene, &bd, 3);
     assert_eq!(a.map(|w| w.mean), b.map(|w| w.mean));
+}
+
+/// Prediction mode through the renderer (tiles, batched predictions, the pass's shared
+/// pool of light subpath candidates) gives the same image bit for bit with 1 and 2
+/// threads, and the pool matters: the same render with other candidates differs.
+#[test]
+fn pooled_prediction_renders_repeat_across_thread_counts() {
+    let scene = std::sync::Arc::new(scene(0.0));
+    let render = |m: u32, threads: usize| {
+        let integ = predicting_with(21, 1, 0.1, 1.0, m);
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| {
+            let mut r = engine::Renderer::new(scene.clone(), integ).unwrap();
+            let control = engine::RenderControl::new();
+            for _ in 0..3 {
+                r.render_pass(&control, 0);
+            }
+            r.snapshot()
+        })
+    };
+    let (a, b) = (render(16, 1), render(16, 2));
+    for buf in engine::Buffer::ALL {
+        assert!(a.sums(buf) == b.sums(buf), "{buf:?} differs between 1 and 2 threads");
+    }
+    let high = |f: &engine::Film| f.sums(engine::Buffer::High).iter().map(|p| p[0] as f64).sum::<f64>();
+    assert!(high(&a) > 0.0, "the predictions reach the image");
+    let c = render(4, 2);
+    assert!(a.sums(engine::Buffer::High) != c.sums(engine::Buffer::High), "the candidates matter");
 }

@@ -683,7 +683,8 @@ impl NimbusApp {
                     )
                     .on_hover_text(
                         "light subpaths offered to each camera end vertex, one chosen by resampling; 1 is the \
-                         thesis's pairing, more lowers the noise at the cost of tracing them",
+                         thesis's pairing; the others are picked from a pool traced once per pass, so more \
+                         lower the noise for little cost",
                     );
                 }
                 ui.checkbox(&mut self.compare, "compare with path tracing")
