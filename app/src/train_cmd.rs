@@ -465,6 +465,8 @@ pub fn bench_predict_p2p(args: BenchPredictP2pArgs) -> Result<()> {
         println!("|---|---|---|---|---|");
         for (name, arch) in [
             ("deep residual, 9 blocks of 3 x 200 (thesis)", P2pArch::default()),
+            ("deep residual, 9 blocks of 3 x 144", P2pArch::Residual { width: 144, layers: 3 }),
+            ("deep residual, 9 blocks of 2 x 128", P2pArch::Residual { width: 128, layers: 2 }),
             ("MLP 2 x 200 (baseline)", P2pArch::Mlp { hidden: vec![200, 200] }),
         ] {
             let net = P2pNetwork::new(&spec, arch, 1, &candle_core::Device::Cpu)?;
