@@ -172,10 +172,10 @@ impl Prediction {
     /// pass's pool, a candidate costs a weight, not a subpath. Measured on scene A at
     /// rho 25 (`nimbus eval p2p --size 64 --spp-ref 1024 --spp 256 --k 1,2,4
     /// --candidates M`, M = 8, 64, 256, 1024, backlit and frontlit): high-order TTUV
-    /// fell with M up to 256 in all six cells, at M = 256 4.8-7.3x below the earlier
+    /// fell with M up to 256 in all six cells, at M = 256 4.8-7.4x below the earlier
     /// default (8 candidates, each a subpath of its own); M = 1024 was within
     /// run-to-run scatter of 256 (1.4x better at backlit k = 1, 1.5x worse at k = 2,
-    /// the same elsewhere) and takes 20 % longer (README).
+    /// within 1.25x elsewhere) and takes 22 % longer (README).
     pub const DEFAULT_CANDIDATES: u32 = 256;
     /// At most this many candidates.
     pub const MAX_CANDIDATES: u32 = 4096;
