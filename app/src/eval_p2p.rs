@@ -300,7 +300,7 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
         let scene = Arc::new(base.build_scene(None)?);
         let tag = format!("{}_{config}_{}_{}", args.cloud, args.size, args.res);
         // Renders with light subpath candidates are named by them (1: no suffix, the
-        // names of earlier caches; the candidates come from the tiles' shared pools,
+        // names of earlier caches; the candidates come from the pass's shared pool,
         // hence "pool", so caches of the earlier per-sample candidates are not reused).
         let m = if args.candidates == 1 { String::new() } else { format!("_pool{}", args.candidates) };
         let mut caches: Vec<PredictorCache> = models.iter().map(|_| PredictorCache::default()).collect();

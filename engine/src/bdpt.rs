@@ -175,7 +175,7 @@ impl Prediction {
     /// fell with M up to 256 in all six cells, at M = 256 4.8-7.4x below the earlier
     /// default (8 candidates, each a subpath of its own); M = 1024 was within
     /// run-to-run scatter of 256 (1.4x better at backlit k = 1, 1.5x worse at k = 2,
-    /// within 1.25x elsewhere) and takes 22 % longer (README).
+    /// within 1.25x elsewhere) and its prediction renders took 12 % longer (README).
     pub const DEFAULT_CANDIDATES: u32 = 256;
     /// At most this many candidates.
     pub const MAX_CANDIDATES: u32 = 4096;
@@ -444,10 +444,13 @@ impl LightPool {
     }
 
     /// A uniformly chosen subpath's end vertex and beam area, or None if the chosen
-    /// one ended early (or the pool is empty). The index is a 32-bit draw scaled by
-    /// multiplication, so no subpath's probability is off 1 / n by more than
-    /// n / 2^32 of itself (1.5e-5 for the largest pools); scaling a 24-bit float
-    /// would allow 1 part in 2^24 / n (0.4 %).
+    /// one ended early (or the pool is empty). Index i < n is taken as the i-th
+    /// successful subpath if there are more than i, else as a failed one: the
+    /// subpaths are exchangeable (i.i.d. and traced apart from the camera samples),
+    /// so which ones failed does not matter, only how many. The index is a 32-bit
+    /// draw scaled by multiplication, so no index's probability is off 1 / n by more
+    /// than n / 2^32 of itself (scaling a 24-bit float would allow 1 part in
+    /// 2^24 / n); being content-blind, no pick biases the estimate either way.
     fn pick(&self, rng: &mut Rng) -> Option<(Vertex, f32)> {
         if self.traced == 0 {
             return None;

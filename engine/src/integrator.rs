@@ -254,14 +254,18 @@ impl Integrator {
     /// In BDPT's prediction mode with more than one light subpath candidate: a pool
     /// of `n` light subpaths for the camera samples of pass `pass` to share as
     /// candidates (see [`crate::bdpt::LightPool`]); None otherwise. Subpath i has
-    /// the stream (seed, pass, i) of a family apart from the pixels'.
+    /// the stream (seed, POOL | pass, i): pixels use (seed, pass, pixel) and
+    /// predictions (random, 0x7072_6564, 0), all with pass < 2^32, so no stream is
+    /// shared. Outside the renderer ([`Integrator::trace`]) there is no pool and each
+    /// of the M - 1 candidates is a light subpath of its own.
     pub fn light_pool(&self, scene: &Scene, pass: u32, n: u32) -> Option<crate::bdpt::LightPool> {
         let (Technique::Bdpt(b), Some(pr)) = (&self.technique, &self.transport) else { return None };
         if pr.candidates <= 1 || scene.sun.is_none() {
             return None;
         }
-        let seed = self.settings.seed ^ 0x4c49_4748_545f_504f;
-        Some(crate::bdpt::LightPool::trace(b, pr, scene, n, |i| Rng::new(seed, pass as u64, i as u64)))
+        const POOL: u64 = 0x504f_4f4c << 32;
+        let (seed, family) = (self.settings.seed, POOL | pass as u64);
+        Some(crate::bdpt::LightPool::trace(b, pr, scene, n, |i| Rng::new(seed, family, i as u64)))
     }
 
     /// [`Integrator::trace`], but in BDPT's prediction mode with `deferred` the

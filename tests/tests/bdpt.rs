@@ -326,10 +326,43 @@ fn bdpt_settings_are_checked_and_results_repeat() {
 
 /// Prediction mode through the renderer (tiles, batched predictions, the pass's shared
 /// pool of light subpath candidates) gives the same image bit for bit with 1 and 2
-/// threads, and the pool matters: the same render with other candidates differs.
+/// threads, the candidate count matters, and a pass is what a loop over the pixels
+/// gives with the pass's pool from `Integrator::light_pool` (so the renderer does
+/// pass the pool: without it the candidates would be subpaths of their own).
 #[test]
 fn pooled_prediction_renders_repeat_across_thread_counts() {
     let scene = std::sync::Arc::new(scene(0.0));
+    {
+        let cam = &scene.camera;
+        let (w, h) = (cam.width(), cam.height());
+        let renderer = engine::Renderer::new(scene.clone(), predicting_with(21, 1, 0.1, 1.0, 16)).unwrap();
+        let control = engine::RenderControl::new();
+        let integ = predicting_with(21, 1, 0.1, 1.0, 16);
+        for pass in 0..2u32 {
+            let rendered = renderer.render_pass_samples(pass, &control, 0).unwrap();
+            let pool = integ.light_pool(&scene, pass, (w * h).min(1 << 16));
+            assert!(pool.as_ref().is_some_and(|p| p.len() == (w * h) as usize), "one subpath per pixel");
+            let (mut deferred, mut looped) = (Vec::new(), Vec::new());
+            for px in 0..w * h {
+                let mut rng = Rng::new(21, pass as u64, px as u64);
+                let (o, d) = cam.generate_ray(px % w, px / w, Vec2::new(rng.uniform(), rng.uniform()));
+                let first = deferred.len();
+                looped.push(integ.trace_deferring(&scene, o, d, &mut rng, pool.as_ref(), Some(&mut deferred)));
+                for p in &mut deferred[first..] {
+                    p.owner = (looped.len() - 1) as u32;
+                }
+            }
+            integ.resolve_deferred(&scene, &mut deferred, &mut looped);
+            for (i, (a, b)) in rendered.iter().zip(&looped).enumerate() {
+                for (x, y) in [(a.direct, b.direct), (a.low, b.low), (a.high, b.high)] {
+                    assert!(
+                        (x - y).abs().max_element() <= 1e-5 * (1.0 + x.abs().max_element()),
+                        "pixel {i}: {x} vs {y}"
+                    );
+                }
+            }
+        }
+    }
     let render = |m: u32, threads: usize| {
         let integ = predicting_with(21, 1, 0.1, 1.0, m);
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
