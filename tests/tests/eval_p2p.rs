@@ -74,7 +74,11 @@ fn small_p2p_evaluation_runs_end_to_end() {
         assert!(c.secs_free > 0.0 && c.free_ceiling.is_finite() && c.free_ceiling > 0.0, "{c:?}");
     }
     assert!(resampled[0].ttuv_pred_high != cells[0].ttuv_pred_high);
-    assert_eq!(resampled[0].ttuv_bdpt_high, cells[0].ttuv_bdpt_high, "the reference is shared");
+    // The reference is shared: read back from the cache here, so equal to the digit
+    // its timing survives JSON (serde_json's default float parser may miss the last
+    // bit), where a re-render would differ in timing by far more.
+    let (a, b) = (resampled[0].ttuv_bdpt_high, cells[0].ttuv_bdpt_high);
+    assert!((a - b).abs() <= 1e-12 * a.abs(), "the reference is shared: {a} vs {b}");
     let mut bad = args(out.clone());
     bad.multi_model = Some(out.join("no-such-model.safetensors"));
     let e = format!("{:#}", eval_p2p(&bad).unwrap_err());
