@@ -409,6 +409,10 @@ pub struct LightPool {
 }
 
 impl LightPool {
+    /// The most subpaths a pool holds (2.3 MB); with more samples per pass, few of
+    /// them share a candidate already.
+    pub const MAX_LEN: u32 = 1 << 16;
+
     /// Traces `n` light subpaths of `pr.segments` segments in parallel, subpath i
     /// with the stream `stream(i)`, so the pool does not depend on the thread count
     /// (empty without a sun).

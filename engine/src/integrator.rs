@@ -251,18 +251,22 @@ impl Integrator {
         self.trace_deferring(scene, o, d, rng, None, None)
     }
 
-    /// In BDPT's prediction mode with more than one light subpath candidate: a pool
-    /// of `n` light subpaths for the camera samples of pass `pass` to share as
-    /// candidates (see [`crate::bdpt::LightPool`]); None otherwise. Subpath i has
+    /// In BDPT's prediction mode with more than one light subpath candidate (and
+    /// predicted orders within `max_order`): a pool of light subpaths for the `n`
+    /// camera samples of pass `pass` to share as candidates, one per sample up to
+    /// [`crate::bdpt::LightPool::MAX_LEN`] (see [`crate::bdpt::LightPool`]); None
+    /// otherwise. Subpath i has
     /// the stream (seed, POOL | pass, i): pixels use (seed, pass, pixel) and
     /// predictions (random, 0x7072_6564, 0), all with pass < 2^32, so no stream is
     /// shared. Outside the renderer ([`Integrator::trace`]) there is no pool and each
     /// of the M - 1 candidates is a light subpath of its own.
     pub fn light_pool(&self, scene: &Scene, pass: u32, n: u32) -> Option<crate::bdpt::LightPool> {
         let (Technique::Bdpt(b), Some(pr)) = (&self.technique, &self.transport) else { return None };
-        if pr.candidates <= 1 || scene.sun.is_none() {
+        let predicts = self.settings.max_order.is_none_or(|m| pr.first_predicted_order() <= m);
+        if pr.candidates <= 1 || scene.sun.is_none() || !predicts {
             return None;
         }
+        let n = n.min(crate::bdpt::LightPool::MAX_LEN);
         const POOL: u64 = 0x504f_4f4c << 32;
         let (seed, family) = (self.settings.seed, POOL | pass as u64);
         Some(crate::bdpt::LightPool::trace(b, pr, scene, n, |i| Rng::new(seed, family, i as u64)))

@@ -118,9 +118,8 @@ impl Renderer {
         let (w, h) = (camera.width(), camera.height());
         let seed = self.integrator.settings().seed;
         // BDPT's prediction mode: the pass's samples share one pool of light subpath
-        // candidates, one subpath per pixel up to 65,536 (2.3 MB; with more, the
-        // samples that share a candidate are already few).
-        let pool = self.integrator.light_pool(&self.scene, pass, (w * h).min(1 << 16));
+        // candidates.
+        let pool = self.integrator.light_pool(&self.scene, pass, w * h);
         let tiles: Vec<Vec<PathSample>> = self
             .tiles
             .par_iter()

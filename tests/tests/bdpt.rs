@@ -340,7 +340,7 @@ fn pooled_prediction_renders_repeat_across_thread_counts() {
         let integ = predicting_with(21, 1, 0.1, 1.0, 16);
         for pass in 0..2u32 {
             let rendered = renderer.render_pass_samples(pass, &control, 0).unwrap();
-            let pool = integ.light_pool(&scene, pass, (w * h).min(1 << 16));
+            let pool = integ.light_pool(&scene, pass, w * h);
             assert!(pool.as_ref().is_some_and(|p| p.len() == (w * h) as usize), "one subpath per pixel");
             let (mut deferred, mut looped) = (Vec::new(), Vec::new());
             for px in 0..w * h {
