@@ -882,4 +882,135 @@ mod tests {
             }
         }
     }
+
+    /// A predictor that is never asked: the tests below read the deferred queries.
+    struct Unasked;
+    impl TransportPredictor for Unasked {
+        fn predict(&self, _: &crate::medium::Medium, _: &P2pQuery, _: &mut Rng) -> f32 {
+            unreachable!("predictions are deferred in these tests")
+        }
+    }
+
+    /// A homogeneous unit cube (isotropic, so every resampling weight is
+    /// beta * area / d^2 with the same phase factor) and a sun.
+    fn cube_scene() -> (Scene, crate::light::Sun) {
+        let bounds = crate::grid::Bounds3::new(Vec3::ZERO, Vec3::ONE);
+        let grid = crate::grid::DensityGrid::from_fn(glam::UVec3::splat(4), bounds, |_| 1.0).unwrap();
+        let medium = crate::medium::Medium::new(Arc::new(grid), 10.0, 0.9, PhaseFunction::Isotropic).unwrap();
+        let sun = crate::light::Sun::new(Vec3::new(0.0, 0.0, -1.0), Vec3::ONE, 0.0).unwrap();
+        let camera =
+            crate::camera::Camera::new(Vec3::new(0.5, 0.5, -3.0), Vec3::splat(0.5), Vec3::Y, 30.0, 4, 4).unwrap();
+        let scene = Scene { medium, sun: Some(sun.clone()), sky: crate::light::Sky { radiance: Vec3::ZERO }, camera };
+        (scene, sun)
+    }
+
+    /// The light end vertex at `x` with throughput `beta`, as a one-segment subpath.
+    fn light_end(x: Vec3, beta: f32) -> Vertex {
+        Vertex { x, wo: Vec3::Z, beta, sigma_t: 10.0 }
+    }
+
+    /// Runs the high-order term of one camera end vertex (at (0.5, 0.5, 0.1), far
+    /// enough from every light end vertex used here to be predicted) with M
+    /// candidates and `pool`; returns the deferred prediction's scale (one channel)
+    /// and its emitter.
+    fn resampled(m: u32, own: Vertex, pool: Option<&LightPool>, rng: &mut Rng) -> Option<(f32, Vec3)> {
+        let (scene, sun) = cube_scene();
+        let pr = Prediction { predictor: Arc::new(Unasked), segments: 1, r: 0.08, p: 1.0, candidates: m };
+        let mut lp =
+            LightPath { verts: [Vertex::default(); MAX_LIGHT_VERTICES as usize], len: 1, beam: -Vec3::Z, area: 2.0 };
+        lp.verts[0] = own;
+        let mut deferred = vec![];
+        let x = Vec3::new(0.5, 0.5, 0.1);
+        predict_high(
+            &pr,
+            &BdptSettings::default(),
+            &scene,
+            &sun,
+            &lp,
+            x,
+            Vec3::Y,
+            0.5,
+            0.0,
+            rng,
+            pool,
+            Some(&mut deferred),
+            &mut |_| panic!("a far pair is predicted, not extended"),
+        );
+        assert!(deferred.len() <= 1);
+        deferred.first().map(|d| (d.scale.x, d.query.emitter))
+    }
+
+    /// White-box check of the resampling weight sum w / (M w_chosen): M counts every
+    /// candidate, the failed subpaths in the pool included. With every candidate
+    /// equal to the sample's own the weight is exactly 1 (both pool branches); with
+    /// failed ones it is (1 + successes) / M. A miscounted M (say 16 for 13) moves it
+    /// far beyond rounding.
+    #[test]
+    fn resampling_weight_counts_every_candidate() {
+        let own = light_end(Vec3::new(0.5, 0.5, 0.9), 0.3);
+        let mut rng = Rng::new(11, 0, 0);
+        let (alone, _) = resampled(1, own, None, &mut rng).unwrap();
+        // beta * y.beta * area / p, times total / (M w) = 1.
+        assert!((alone - 0.5 * 0.3 * 2.0).abs() < 1e-6, "{alone}");
+        let close = |a: f32, b: f32| (a - b).abs() <= 1e-5 * b.abs();
+        for (traced, successes) in [(12u32, 12usize), (12, 0), (12, 5), (300, 300), (300, 0)] {
+            let pool = LightPool { ends: vec![(own, 2.0); successes], traced };
+            // M - 1 >= the pool: all entries once, M = 1 + traced.
+            let whole = resampled(traced + 4, own, Some(&pool), &mut rng).unwrap().0;
+            let want = alone * (1 + successes) as f32 / (1 + traced) as f32;
+            assert!(close(whole, want), "all of {traced} ({successes} successful): {whole} vs {want}");
+            // Fewer candidates than the pool holds: uniform picks, M as asked.
+            if successes == 0 || successes == traced as usize {
+                let m = 8;
+                let picked = resampled(m, own, Some(&pool), &mut rng).unwrap().0;
+                let want = if successes == 0 { alone / m as f32 } else { alone };
+                assert!(close(picked, want), "8 picked of {traced} ({successes} successful): {picked} vs {want}");
+            }
+        }
+        // Picks from a half-failed pool: the weight is (1 + successful picks) / M, so
+        // its mean over many draws is alone * (1 + (M - 1) / 2) / M.
+        let pool = LightPool { ends: vec![(own, 2.0); 100], traced: 200 };
+        let (m, n) = (9u32, 20_000);
+        let mut stats = crate::stats::Welford::default();
+        for _ in 0..n {
+            let w = resampled(m, own, Some(&pool), &mut rng).unwrap().0 / alone * m as f32;
+            let successes = w.round();
+            assert!((w - successes).abs() < 1e-4 && (1.0..=m as f32).contains(&successes), "{w}");
+            stats.add(successes as f64 - 1.0);
+        }
+        // Successful picks ~ Binomial(8, 1/2): mean 4, standard error sqrt(2 / n).
+        let z = (stats.mean - 4.0) / (2.0f64 / n as f64).sqrt();
+        assert!(z.abs() < crate::stats::z_bound(0.001, 1), "successful picks {} vs 4: z = {z:.2}", stats.mean);
+    }
+
+    /// Which candidate is chosen: with the whole pool offered, candidate i is taken
+    /// with probability w_i / sum w (a chi-square test over 5 candidates of unequal
+    /// weight), and the weight sum w / (M w_i) matches the chosen one.
+    #[test]
+    fn resampling_chooses_in_proportion_to_the_weights() {
+        let x = Vec3::new(0.5, 0.5, 0.1);
+        let ends: Vec<Vertex> = [(0.9, 0.3), (0.7, 0.3), (0.5, 1.0), (0.95, 2.0), (0.6, 0.05)]
+            .iter()
+            .map(|&(z, beta)| light_end(Vec3::new(0.5, 0.5, z), beta))
+            .collect();
+        // Isotropic phase: w_i = beta_i * area / d_i^2 (all d_i above r here).
+        let w: Vec<f64> = ends.iter().map(|v| v.beta as f64 * 2.0 / (v.x - x).length_squared() as f64).collect();
+        let total: f64 = w.iter().sum();
+        let pool = LightPool { ends: ends[1..].iter().map(|&v| (v, 2.0)).collect(), traced: 4 };
+        let mut rng = Rng::new(12, 0, 0);
+        let n = 40_000;
+        let mut counts = [0.0f64; 5];
+        let base = 0.5 * 2.0;
+        for _ in 0..n {
+            let (scale, emitter) = resampled(5, ends[0], Some(&pool), &mut rng).unwrap();
+            let i = ends.iter().position(|v| v.x == emitter).expect("the emitter is a candidate");
+            counts[i] += 1.0;
+            // scale = base * y.beta * total / (M w_i), w_i = y.beta * area / d^2.
+            let want = base * ends[i].beta as f64 * total / (5.0 * w[i]);
+            assert!((scale as f64 - want).abs() <= 1e-4 * want, "candidate {i}: {scale} vs {want}");
+        }
+        let expected: Vec<f64> = w.iter().map(|wi| n as f64 * wi / total).collect();
+        let chi2 = crate::stats::chi2_test(&counts, &expected, 5.0);
+        assert!(chi2.p_value > 1e-3, "choices {counts:?} vs {expected:?}: {chi2:?}");
+    }
 }
