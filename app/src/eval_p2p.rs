@@ -380,7 +380,9 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                 let start = done;
                 let (imgs, meta) = cached(
                     &cache,
-                    &format!("{tag}_pred_{id}_k{k}_p{}_r{}{m}_spp{}", args.p, args.r, args.spp),
+                    // "_q16": features from the pyramid's 16-bit samples; renders
+                    // timed with the earlier 32-bit ones are not reused.
+                    &format!("{tag}_pred_{id}_k{k}_p{}_r{}{m}_q16_spp{}", args.p, args.r, args.spp),
                     &scene,
                     &mut || from_file(&pred, &scene, &mut caches[mi]),
                     args.spp,

@@ -422,7 +422,7 @@ pub struct BenchPredictP2pArgs {
 /// (Glorot-initialized: the cost does not depend on the weights) single and batched,
 /// with the MLP baseline beside it.
 pub fn bench_predict_p2p(args: BenchPredictP2pArgs) -> Result<()> {
-    use models::density_features::{LocalFrame, P2pFeatures, pyramid_for};
+    use models::density_features::{DensityPyramid, LocalFrame, P2pFeatures};
     use models::p2p_net::{P2pArch, P2pNetwork};
     if args.n == 0 {
         bail!("--n must be at least 1");
@@ -433,13 +433,16 @@ pub fn bench_predict_p2p(args: BenchPredictP2pArgs) -> Result<()> {
         let grid = modeler::build_grid(&params, args.resolution)?;
         let spec = P2pFeatures::default();
         let t = std::time::Instant::now();
-        let pyramid = pyramid_for(&grid, &spec, 1.0);
+        // What `pyramid_for` builds (unit distance), kept at 32 bits as the baseline.
+        let full = DensityPyramid::new(&grid, spec.max_local_std());
+        let pyramid = full.quantized();
         let build = t.elapsed().as_secs_f64();
         println!("# nimbus bench predict-p2p: one thread, scene-a {}^3", args.resolution);
         println!(
-            "density pyramid: {} levels, {:.1} MiB, built in {:.2} s",
+            "density pyramid: {} levels, {:.1} MiB with 16-bit samples ({:.1} MiB at 32 bits), built in {:.2} s",
             pyramid.levels(),
             pyramid.bytes() as f64 / (1 << 20) as f64,
+            full.bytes() as f64 / (1 << 20) as f64,
             build
         );
         let medium = engine::Medium::new(Arc::new(grid), 25.0, 0.99, engine::PhaseFunction::Isotropic)?;
@@ -455,12 +458,25 @@ pub fn bench_predict_p2p(args: BenchPredictP2pArgs) -> Result<()> {
             }
         }
         let mut x = vec![0.0f32; args.n * spec.len()];
-        let t = std::time::Instant::now();
-        for (f, row) in frames.iter().zip(x.chunks_mut(spec.len())) {
-            spec.write(&pyramid, 25.0, 0.99, f, row);
+        // Both sample widths, alternating over three rounds (the best round of each),
+        // so that both see the same machine.
+        let (mut us16, mut us32) = (f64::INFINITY, f64::INFINITY);
+        for _ in 0..3 {
+            for (p, best) in [(&full, &mut us32), (&pyramid, &mut us16)] {
+                let t = std::time::Instant::now();
+                for (f, row) in frames.iter().zip(x.chunks_mut(spec.len())) {
+                    spec.write(p, 25.0, 0.99, f, row);
+                }
+                *best = best.min(t.elapsed().as_secs_f64() * 1e6 / args.n as f64);
+            }
         }
-        let features_us = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
-        println!("features (351 densities + phi_D): {features_us:.2} us per query");
+        // `x` now holds the 16-bit features (the renderer's).
+        let features_us = us16;
+        println!(
+            "features (351 densities + phi_D): {us16:.2} us per query with 16-bit samples, {us32:.2} us at 32 bits \
+             ({:.2}x faster)",
+            us32 / us16
+        );
         println!("| network | parameters | single (us) | batched (us per prediction) | features + batched (us) |");
         println!("|---|---|---|---|---|");
         for (name, arch) in [
