@@ -893,10 +893,10 @@ mod tests {
 
     /// A homogeneous unit cube (isotropic, so every resampling weight is
     /// beta * area / d^2 with the same phase factor) and a sun.
-    fn cube_scene() -> (Scene, crate::light::Sun) {
+    fn cube_scene(phase: PhaseFunction) -> (Scene, crate::light::Sun) {
         let bounds = crate::grid::Bounds3::new(Vec3::ZERO, Vec3::ONE);
         let grid = crate::grid::DensityGrid::from_fn(glam::UVec3::splat(4), bounds, |_| 1.0).unwrap();
-        let medium = crate::medium::Medium::new(Arc::new(grid), 10.0, 0.9, PhaseFunction::Isotropic).unwrap();
+        let medium = crate::medium::Medium::new(Arc::new(grid), 10.0, 0.9, phase).unwrap();
         let sun = crate::light::Sun::new(Vec3::new(0.0, 0.0, -1.0), Vec3::ONE, 0.0).unwrap();
         let camera =
             crate::camera::Camera::new(Vec3::new(0.5, 0.5, -3.0), Vec3::splat(0.5), Vec3::Y, 30.0, 4, 4).unwrap();
@@ -914,10 +914,21 @@ mod tests {
     /// candidates and `pool`; returns the deferred prediction's scale (one channel)
     /// and its emitter.
     fn resampled(m: u32, own: Vertex, pool: Option<&LightPool>, rng: &mut Rng) -> Option<(f32, Vec3)> {
-        let (scene, sun) = cube_scene();
+        resampled_with(PhaseFunction::Isotropic, m, (own, 2.0), pool, rng)
+    }
+
+    /// [`resampled`] with a phase function and the own subpath's beam area.
+    fn resampled_with(
+        phase: PhaseFunction,
+        m: u32,
+        (own, area): (Vertex, f32),
+        pool: Option<&LightPool>,
+        rng: &mut Rng,
+    ) -> Option<(f32, Vec3)> {
+        let (scene, sun) = cube_scene(phase);
         let pr = Prediction { predictor: Arc::new(Unasked), segments: 1, r: 0.08, p: 1.0, candidates: m };
         let mut lp =
-            LightPath { verts: [Vertex::default(); MAX_LIGHT_VERTICES as usize], len: 1, beam: -Vec3::Z, area: 2.0 };
+            LightPath { verts: [Vertex::default(); MAX_LIGHT_VERTICES as usize], len: 1, beam: -Vec3::Z, area };
         lp.verts[0] = own;
         let mut deferred = vec![];
         let x = Vec3::new(0.5, 0.5, 0.1);
@@ -985,32 +996,54 @@ mod tests {
 
     /// Which candidate is chosen: with the whole pool offered, candidate i is taken
     /// with probability w_i / sum w (a chi-square test over 5 candidates of unequal
-    /// weight), and the weight sum w / (M w_i) matches the chosen one.
+    /// weight: throughputs, beam areas, distances and, with a forward-scattering phase
+    /// function, the phase terms of the direct segment all differ), and the weight sum
+    /// w / (M w_i) matches the chosen one.
     #[test]
     fn resampling_chooses_in_proportion_to_the_weights() {
         let x = Vec3::new(0.5, 0.5, 0.1);
-        let ends: Vec<Vertex> = [(0.9, 0.3), (0.7, 0.3), (0.5, 1.0), (0.95, 2.0), (0.6, 0.05)]
-            .iter()
-            .map(|&(z, beta)| light_end(Vec3::new(0.5, 0.5, z), beta))
-            .collect();
-        // Isotropic phase: w_i = beta_i * area / d_i^2 (all d_i above r here).
-        let w: Vec<f64> = ends.iter().map(|v| v.beta as f64 * 2.0 / (v.x - x).length_squared() as f64).collect();
-        let total: f64 = w.iter().sum();
-        let pool = LightPool { ends: ends[1..].iter().map(|&v| (v, 2.0)).collect(), traced: 4 };
-        let mut rng = Rng::new(12, 0, 0);
-        let n = 40_000;
-        let mut counts = [0.0f64; 5];
-        let base = 0.5 * 2.0;
-        for _ in 0..n {
-            let (scale, emitter) = resampled(5, ends[0], Some(&pool), &mut rng).unwrap();
-            let i = ends.iter().position(|v| v.x == emitter).expect("the emitter is a candidate");
-            counts[i] += 1.0;
-            // scale = base * y.beta * total / (M w_i), w_i = y.beta * area / d^2.
-            let want = base * ends[i].beta as f64 * total / (5.0 * w[i]);
-            assert!((scale as f64 - want).abs() <= 1e-4 * want, "candidate {i}: {scale} vs {want}");
+        let wo = Vec3::Y;
+        // (position, throughput, beam area); all farther from x than r = 0.08.
+        let ends: Vec<(Vertex, f32)> = [
+            (Vec3::new(0.5, 0.5, 0.9), 0.3, 2.0),
+            (Vec3::new(0.5, 0.2, 0.7), 0.3, 1.0),
+            (Vec3::new(0.9, 0.5, 0.5), 1.0, 3.0),
+            (Vec3::new(0.5, 0.8, 0.95), 2.0, 0.5),
+            (Vec3::new(0.2, 0.6, 0.6), 0.05, 4.0),
+        ]
+        .iter()
+        .map(|&(p, beta, area)| (light_end(p, beta), area))
+        .collect();
+        for phase in [PhaseFunction::Isotropic, PhaseFunction::HenyeyGreenstein { g: 0.6 }] {
+            // w_i = beta_i area_i phase(wo, dir) phase(wo_i, -dir) / d_i^2, dir from
+            // x toward y_i (none of these phase products is near the floor).
+            let w: Vec<f64> = ends
+                .iter()
+                .map(|(v, area)| {
+                    let d = v.x - x;
+                    let dir = d.normalize();
+                    let phases = phase.eval(wo, dir) as f64 * phase.eval(v.wo, -dir) as f64;
+                    assert!(phases > 1e-3 * (INV_4PI as f64).powi(2));
+                    v.beta as f64 * *area as f64 * phases / d.length_squared() as f64
+                })
+                .collect();
+            let total: f64 = w.iter().sum();
+            let pool = LightPool { ends: ends[1..].to_vec(), traced: 4 };
+            let mut rng = Rng::new(12, 0, 0);
+            let n = 40_000;
+            let mut counts = [0.0f64; 5];
+            for _ in 0..n {
+                let (scale, emitter) = resampled_with(phase, 5, ends[0], Some(&pool), &mut rng).unwrap();
+                let i = ends.iter().position(|(v, _)| v.x == emitter).expect("the emitter is a candidate");
+                counts[i] += 1.0;
+                // scale = beta (0.5) * y.beta * area_i * total / (M w_i) / p.
+                let want = 0.5 * ends[i].0.beta as f64 * ends[i].1 as f64 * total / (5.0 * w[i]);
+                assert!((scale as f64 - want).abs() <= 1e-4 * want, "{phase:?}, candidate {i}: {scale} vs {want}");
+            }
+            let expected: Vec<f64> = w.iter().map(|wi| n as f64 * wi / total).collect();
+            assert!(expected.iter().all(|e| *e > 100.0), "{expected:?}");
+            let chi2 = crate::stats::chi2_test(&counts, &expected, 5.0);
+            assert!(chi2.p_value > 1e-3, "{phase:?}: choices {counts:?} vs {expected:?}: {chi2:?}");
         }
-        let expected: Vec<f64> = w.iter().map(|wi| n as f64 * wi / total).collect();
-        let chi2 = crate::stats::chi2_test(&counts, &expected, 5.0);
-        assert!(chi2.p_value > 1e-3, "choices {counts:?} vs {expected:?}: {chi2:?}");
     }
 }

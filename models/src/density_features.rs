@@ -64,10 +64,11 @@ impl Texels {
     /// 16-bit fixed point, rounded to nearest (negative values, which filtering
     /// non-negative densities does not make, clamp to 0).
     fn quantized(&self) -> Texels {
-        let d = self.f32();
+        let Texels::F32(d) = self else { return self.clone() };
         let max = d.iter().fold(0.0f32, |m, v| m.max(*v));
-        let scale = if max > 0.0 { max / 65535.0 } else { 0.0 };
-        let inv = if scale > 0.0 { 1.0 / scale } else { 0.0 };
+        // (65535 / max, not 1 / scale: a subnormal scale would invert to infinity.)
+        let inv = if max > 0.0 { 65535.0 / max } else { 0.0 };
+        let (scale, inv) = if inv.is_finite() { (max / 65535.0, inv) } else { (0.0, 0.0) };
         Texels::U16 { q: d.iter().map(|v| (v * inv).round().clamp(0.0, 65535.0) as u16).collect(), scale }
     }
 
@@ -121,10 +122,12 @@ impl Level {
     #[inline(always)]
     fn cell(&self, p: Vec3) -> Option<(usize, Vec3)> {
         let u = (p - self.origin) * self.inv_h - 0.5;
+        // NaN, infinite or so far out that index arithmetic could overflow: not here.
+        if !(u.is_finite() && u.abs().max_element() < 1e9) {
+            return None;
+        }
         // floor by truncation (a libm call on baseline x86-64 otherwise): exact for
-        // |u| < 1e9, the range accepted below; NaN and huge u give a meaningless
-        // index, but fail the range check on u before any index arithmetic could
-        // overflow.
+        // |u| < 1e9.
         let floor = |v: f32| {
             let t = v as i64;
             t - (v < t as f32) as i64
@@ -132,14 +135,7 @@ impl Level {
         let (x, y, z) = (floor(u.x), floor(u.y), floor(u.z));
         let f = Vec3::new(x as f32, y as f32, z as f32);
         let [nx, ny, nz] = self.dims;
-        (u.is_finite()
-            && u.abs().max_element() < 1e9
-            && x >= 0
-            && y >= 0
-            && z >= 0
-            && x + 1 < nx as i64
-            && y + 1 < ny as i64
-            && z + 1 < nz as i64)
+        (x >= 0 && y >= 0 && z >= 0 && x + 1 < nx as i64 && y + 1 < ny as i64 && z + 1 < nz as i64)
             .then(|| (x as usize + nx * (y as usize + ny * z as usize), u - f))
     }
 
@@ -685,9 +681,9 @@ mod tests {
     }
 
     /// The prefetching many-point lookup gives exactly the single lookups, for one
-    /// level and for blends, with points inside, on the border, outside and NaN, with
-    /// 32-bit and 16-bit samples; the 16-bit lookups are within half a step
-    /// (max / 65535 / 2, plus float rounding) of the 32-bit ones.
+    /// level and for blends, with points inside, on the border, outside, infinite and
+    /// NaN, with 32-bit and 16-bit samples; the 16-bit lookups are within half a step
+    /// of the largest level (max / 65535 / 2, plus float rounding) of the 32-bit ones.
     #[test]
     fn many_point_lookups_match_single_ones() {
         let grid = DensityGrid::from_fn(
@@ -706,6 +702,9 @@ mod tests {
         points[7] = Vec3::NAN;
         // Far enough out that index arithmetic on it would overflow: outside, 0.
         points[8] = Vec3::splat(1e30);
+        points[9] = Vec3::splat(-1e30);
+        points[10] = Vec3::new(f32::NEG_INFINITY, 0.0, 0.0);
+        points[11] = Vec3::new(0.0, 0.0, f32::INFINITY);
         // The largest step of any level.
         let step = half
             .levels
