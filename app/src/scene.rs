@@ -230,7 +230,7 @@ pub struct RenderDesc {
     #[serde(skip_serializing_if = "is_default_r")]
     pub r: f32,
     /// Light subpaths offered to each camera end vertex in BDPT prediction, one chosen
-    /// by resampling. Default 8; 1 is the thesis's pairing (see engine::bdpt).
+    /// by resampling. Default 256 (picked from the pass's pool); 1 is the thesis's pairing (see engine::bdpt).
     #[serde(skip_serializing_if = "is_default_candidates")]
     pub candidates: u32,
 }
