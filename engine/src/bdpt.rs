@@ -913,19 +913,24 @@ mod tests {
     /// enough from every light end vertex used here to be predicted) with M
     /// candidates and `pool`; returns the deferred prediction's scale (one channel)
     /// and its emitter.
-    fn resampled(m: u32, own: Vertex, pool: Option<&LightPool>, rng: &mut Rng) -> Option<(f32, Vec3)> {
-        resampled_with(PhaseFunction::Isotropic, m, (own, 2.0), pool, rng)
+    fn resampled(
+        cube: &(Scene, crate::light::Sun),
+        m: u32,
+        own: Vertex,
+        pool: Option<&LightPool>,
+        rng: &mut Rng,
+    ) -> Option<(f32, Vec3)> {
+        resampled_with(cube, m, (own, 2.0), pool, rng)
     }
 
-    /// [`resampled`] with a phase function and the own subpath's beam area.
+    /// [`resampled`] with the own subpath's beam area.
     fn resampled_with(
-        phase: PhaseFunction,
+        (scene, sun): &(Scene, crate::light::Sun),
         m: u32,
         (own, area): (Vertex, f32),
         pool: Option<&LightPool>,
         rng: &mut Rng,
     ) -> Option<(f32, Vec3)> {
-        let (scene, sun) = cube_scene(phase);
         let pr = Prediction { predictor: Arc::new(Unasked), segments: 1, r: 0.08, p: 1.0, candidates: m };
         let mut lp =
             LightPath { verts: [Vertex::default(); MAX_LIGHT_VERTICES as usize], len: 1, beam: -Vec3::Z, area };
@@ -935,8 +940,8 @@ mod tests {
         predict_high(
             &pr,
             &BdptSettings::default(),
-            &scene,
-            &sun,
+            scene,
+            sun,
             &lp,
             x,
             Vec3::Y,
@@ -959,21 +964,22 @@ mod tests {
     #[test]
     fn resampling_weight_counts_every_candidate() {
         let own = light_end(Vec3::new(0.5, 0.5, 0.9), 0.3);
+        let cube = cube_scene(PhaseFunction::Isotropic);
         let mut rng = Rng::new(11, 0, 0);
-        let (alone, _) = resampled(1, own, None, &mut rng).unwrap();
+        let (alone, _) = resampled(&cube, 1, own, None, &mut rng).unwrap();
         // beta * y.beta * area / p, times total / (M w) = 1.
         assert!((alone - 0.5 * 0.3 * 2.0).abs() < 1e-6, "{alone}");
         let close = |a: f32, b: f32| (a - b).abs() <= 1e-5 * b.abs();
         for (traced, successes) in [(12u32, 12usize), (12, 0), (12, 5), (300, 300), (300, 0)] {
             let pool = LightPool { ends: vec![(own, 2.0); successes], traced };
             // M - 1 >= the pool: all entries once, M = 1 + traced.
-            let whole = resampled(traced + 4, own, Some(&pool), &mut rng).unwrap().0;
+            let whole = resampled(&cube, traced + 4, own, Some(&pool), &mut rng).unwrap().0;
             let want = alone * (1 + successes) as f32 / (1 + traced) as f32;
             assert!(close(whole, want), "all of {traced} ({successes} successful): {whole} vs {want}");
             // Fewer candidates than the pool holds: uniform picks, M as asked.
             if successes == 0 || successes == traced as usize {
                 let m = 8;
-                let picked = resampled(m, own, Some(&pool), &mut rng).unwrap().0;
+                let picked = resampled(&cube, m, own, Some(&pool), &mut rng).unwrap().0;
                 let want = if successes == 0 { alone / m as f32 } else { alone };
                 assert!(close(picked, want), "8 picked of {traced} ({successes} successful): {picked} vs {want}");
             }
@@ -984,7 +990,7 @@ mod tests {
         let (m, n) = (9u32, 20_000);
         let mut stats = crate::stats::Welford::default();
         for _ in 0..n {
-            let w = resampled(m, own, Some(&pool), &mut rng).unwrap().0 / alone * m as f32;
+            let w = resampled(&cube, m, own, Some(&pool), &mut rng).unwrap().0 / alone * m as f32;
             let successes = w.round();
             assert!((w - successes).abs() < 1e-4 && (1.0..=m as f32).contains(&successes), "{w}");
             stats.add(successes as f64 - 1.0);
@@ -1015,6 +1021,7 @@ mod tests {
         .map(|&(p, beta, area)| (light_end(p, beta), area))
         .collect();
         for phase in [PhaseFunction::Isotropic, PhaseFunction::HenyeyGreenstein { g: 0.6 }] {
+            let cube = cube_scene(phase);
             // w_i = beta_i area_i phase(wo, dir) phase(wo_i, -dir) / d_i^2, dir from
             // x toward y_i (none of these phase products is near the floor).
             let w: Vec<f64> = ends
@@ -1033,7 +1040,7 @@ mod tests {
             let n = 40_000;
             let mut counts = [0.0f64; 5];
             for _ in 0..n {
-                let (scale, emitter) = resampled_with(phase, 5, ends[0], Some(&pool), &mut rng).unwrap();
+                let (scale, emitter) = resampled_with(&cube, 5, ends[0], Some(&pool), &mut rng).unwrap();
                 let i = ends.iter().position(|(v, _)| v.x == emitter).expect("the emitter is a candidate");
                 counts[i] += 1.0;
                 // scale = beta (0.5) * y.beta * area_i * total / (M w_i) / p.

@@ -255,10 +255,9 @@ impl Integrator {
     /// predicted orders within `max_order`): a pool of light subpaths for the `n`
     /// camera samples of pass `pass` to share as candidates, one per sample up to
     /// [`crate::bdpt::LightPool::MAX_LEN`] (see [`crate::bdpt::LightPool`]); None
-    /// otherwise. Subpath i has
-    /// the stream (seed, POOL | pass, i): pixels use (seed, pass, pixel) and
-    /// predictions (random, 0x7072_6564, 0), all with pass < 2^32, so no stream is
-    /// shared. Outside the renderer ([`Integrator::trace`]) there is no pool and each
+    /// otherwise. Subpath i has the stream (seed, POOL | pass, i): pixels use
+    /// (seed, pass, pixel) and predictions (random, 0x7072_6564, 0), all with
+    /// pass < 2^32, so no stream is shared. Outside the renderer ([`Integrator::trace`]) there is no pool and each
     /// of the M - 1 candidates is a light subpath of its own.
     pub fn light_pool(&self, scene: &Scene, pass: u32, n: u32) -> Option<crate::bdpt::LightPool> {
         let (Technique::Bdpt(b), Some(pr)) = (&self.technique, &self.transport) else { return None };

@@ -107,6 +107,16 @@ struct Level {
 }
 
 impl Level {
+    /// A level with samples `data` (1 / h derived here, so it always matches h).
+    fn new(origin: Vec3, h: Vec3, dims: [usize; 3], data: Texels) -> Self {
+        Level { origin, h, inv_h: 1.0 / h, dims, data }
+    }
+
+    /// The same grid with other samples.
+    fn with_data(&self, dims: [usize; 3], data: Texels) -> Self {
+        Level::new(self.origin, self.h, dims, data)
+    }
+
     #[inline]
     fn at(&self, x: i64, y: i64, z: i64) -> f32 {
         let [nx, ny, nz] = self.dims;
@@ -284,13 +294,12 @@ impl DensityPyramid {
         let h0 = grid.voxel_size();
         let hmax = h0.max_element();
         let tent = 1.0 / 6.0;
-        let raw = Level {
-            origin: grid.origin(),
-            h: h0,
-            inv_h: 1.0 / h0,
-            dims: [d.x as usize, d.y as usize, d.z as usize],
-            data: Texels::F32(grid.data().to_vec()),
-        };
+        let raw = Level::new(
+            grid.origin(),
+            h0,
+            [d.x as usize, d.y as usize, d.z as usize],
+            Texels::F32(grid.data().to_vec()),
+        );
         // Filters `level` (stored variance `from` in its voxels^2) to stored variance
         // `to` on the same grid.
         let blur = |level: &Level, from: f64, to: f64| {
@@ -298,7 +307,7 @@ impl DensityPyramid {
             for axis in 0..3 {
                 (data, dims) = resample_axis(&data, dims, axis, to - from, 0.0, 1.0, dims[axis]);
             }
-            Level { data: Texels::F32(data), dims, ..level.clone() }
+            level.with_data(dims, Texels::F32(data))
         };
         // Octave 0: the voxel grid, padded, stored with the variance of its base
         // width 2h.
@@ -308,13 +317,7 @@ impl DensityPyramid {
             let n_out = dims[axis] + 2 * PAD as usize;
             (data, dims) = resample_axis(&data, dims, axis, base, -(PAD as f64), 1.0, n_out);
         }
-        let mut octaves = vec![Level {
-            origin: grid.origin() - h0 * PAD as f32,
-            h: h0,
-            inv_h: 1.0 / h0,
-            dims,
-            data: Texels::F32(data),
-        }];
+        let mut octaves = vec![Level::new(grid.origin() - h0 * PAD as f32, h0, dims, Texels::F32(data))];
         let mut s = 2.0 * hmax;
         while s < max_std.max(hmax) && octaves.len() < 40 {
             let prev = octaves.last().unwrap();
@@ -326,13 +329,7 @@ impl DensityPyramid {
                 (data, dims) = resample_axis(&data, dims, axis, 3.0 * base, 0.5 - 2.0 * PAD as f64, 2.0, n_out);
             }
             let h = prev.h * 2.0;
-            octaves.push(Level {
-                origin: prev.origin - h * PAD as f32,
-                h,
-                inv_h: 1.0 / h,
-                dims,
-                data: Texels::F32(data),
-            });
+            octaves.push(Level::new(prev.origin - h * PAD as f32, h, dims, Texels::F32(data)));
             s *= 2.0;
         }
         // The raw voxels (the tent alone: width h / sqrt(6)); on the voxel grid the
@@ -367,11 +364,7 @@ impl DensityPyramid {
     /// The same pyramid with 16-bit samples (see [`Texels`]): what features are
     /// computed from, for data sets and rendering alike.
     pub fn quantized(&self) -> Self {
-        let levels = self
-            .levels
-            .iter()
-            .map(|l| Level { origin: l.origin, h: l.h, inv_h: l.inv_h, dims: l.dims, data: l.data.quantized() })
-            .collect();
+        let levels = self.levels.iter().map(|l| l.with_data(l.dims, l.data.quantized())).collect();
         DensityPyramid { levels, stds: self.stds.clone() }
     }
 
@@ -634,14 +627,8 @@ mod tests {
     fn fast_trilinear_matches_the_checked_one() {
         let dims = [5usize, 4, 6];
         let data: Vec<f32> = (0..dims[0] * dims[1] * dims[2]).map(|i| ((i * 37) % 11) as f32 + 0.25).collect();
-        let level = Level {
-            origin: Vec3::new(-0.3, 0.1, 0.2),
-            h: Vec3::new(0.5, 0.25, 0.4),
-            inv_h: 1.0 / Vec3::new(0.5, 0.25, 0.4),
-            dims,
-            data: Texels::F32(data),
-        };
-        let quantized = Level { data: level.data.quantized(), ..level.clone() };
+        let level = Level::new(Vec3::new(-0.3, 0.1, 0.2), Vec3::new(0.5, 0.25, 0.4), dims, Texels::F32(data));
+        let quantized = level.with_data(dims, level.data.quantized());
         for level in [level, quantized] {
             trilinear_matches_checked(&level);
         }
