@@ -121,13 +121,17 @@ pub struct RenderArgs {
     /// .json); default: the shipped single-cloud model.
     #[arg(long)]
     pub p2p_model: Option<PathBuf>,
-    /// Distance threshold r of BDPT prediction (default 0.08).
+    /// Distance threshold r of BDPT prediction (default 0.04; the thesis's 0.08).
     #[arg(long)]
     pub r: Option<f32>,
     /// Light subpaths offered to each camera end vertex in BDPT prediction, one
     /// chosen by resampling (default 256, picked from the pass's pool; 1 is the thesis's pairing).
     #[arg(long)]
     pub candidates: Option<u32>,
+    /// Point-to-point samples for each pair of end vertices closer than r in BDPT
+    /// prediction (default 4).
+    #[arg(long)]
+    pub extension_samples: Option<u32>,
 }
 
 #[derive(Args, Debug)]
@@ -374,6 +378,9 @@ fn render(args: RenderArgs) -> Result<()> {
     }
     if let Some(m) = args.candidates {
         file.render.candidates = m;
+    }
+    if let Some(n) = args.extension_samples {
+        file.render.extension_samples = n;
     }
     if let Some(m) = &args.model {
         // Relative to where nimbus runs, like every other path on the command line.

@@ -61,6 +61,10 @@ pub struct EvalP2pArgs {
     /// baseline alike)
     #[arg(long, default_value_t = engine::bdpt::Prediction::DEFAULT_CANDIDATES)]
     pub candidates: u32,
+    /// Point-to-point samples averaged for each pair closer than r (predictions and
+    /// the estimated baseline alike)
+    #[arg(long, default_value_t = engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES)]
+    pub extension_samples: u32,
     /// The cloud (a modeler preset).
     #[arg(long, default_value = "scene-a")]
     pub cloud: String,
@@ -180,12 +184,13 @@ impl engine::TransportPredictor for FreeTransport {
 fn scene_file(args: &EvalP2pArgs, config: &str) -> Result<SceneFile> {
     let text = format!(
         "seed = 1\n[grid]\npreset = \"{}\"\nresolution = {}\n[medium]\nrho = 25.0\nalbedo = 0.99\nphase = \"isotropic\"\n\
-         [camera]\npreset = \"{config}\"\nwidth = {s}\nheight = {s}\n[render]\nintegrator = \"bdpt\"\np = {}\nr = {}\ncandidates = {}\n",
+         [camera]\npreset = \"{config}\"\nwidth = {s}\nheight = {s}\n[render]\nintegrator = \"bdpt\"\np = {}\nr = {}\ncandidates = {}\nextension_samples = {}\n",
         args.cloud,
         args.res,
         args.p,
         args.r,
         args.candidates,
+        args.extension_samples,
         s = args.size
     );
     let s = SceneFile::from_toml_str(&text, "point-to-point evaluation scene")?;
@@ -303,6 +308,14 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
         // names of earlier caches; the candidates come from the pass's shared pool,
         // hence "pool", so caches of the earlier per-sample candidates are not reused).
         let m = if args.candidates == 1 { String::new() } else { format!("_pool{}", args.candidates) };
+        // And by the extension samples: always with a pool (session 19's close-pair
+        // resampling target came with them, so pooled renders of earlier sessions,
+        // without the suffix, are not reused), without one where they are not 1.
+        let m = if args.candidates == 1 && args.extension_samples == 1 {
+            m
+        } else {
+            format!("{m}_x{}", args.extension_samples)
+        };
         let mut caches: Vec<PredictorCache> = models.iter().map(|_| PredictorCache::default()).collect();
         let mut none = PredictorCache::default();
         let step = |n: u32, start: u64| bar.set_position(start + n as u64);
@@ -359,7 +372,8 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                     &scene,
                     &mut || {
                         Ok(Integrator::bdpt_prediction(pred.settings(), Default::default(), transport.clone(), args.r)?
-                            .with_light_candidates(args.candidates)?)
+                            .with_light_candidates(args.candidates)?
+                            .with_extension_samples(args.extension_samples)?)
                     },
                     args.spp,
                     &[Buffer::High],
@@ -530,8 +544,16 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
     let mut md = format!(
         "# Point-to-point model: evaluation (thesis 6.5)\n\n{} at {}x{}, rho 25, albedo 0.99, isotropic; BDPT references \
          {} spp (split at 2k + 1), predictions and the estimated baseline {} spp, p {}, r {}, {} light subpath \
-         candidate(s) per camera end vertex.\n\n",
-        args.cloud, args.size, args.size, args.spp_ref, args.spp, args.p, args.r, args.candidates
+         candidate(s) per camera end vertex, {} point-to-point sample(s) per pair closer than r.\n\n",
+        args.cloud,
+        args.size,
+        args.size,
+        args.spp_ref,
+        args.spp,
+        args.p,
+        args.r,
+        args.candidates,
+        args.extension_samples
     );
     md += "## Bias of the high orders (table 6.2)\n\nMAE: the thesis's measure (mean absolute error of the high-order \
            image, all pixels, linear; it includes noise, and its scale depends on the scene's brightness). Relative bias: \

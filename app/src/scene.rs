@@ -226,13 +226,21 @@ pub struct RenderDesc {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub p2p_model: Option<String>,
     /// Distance threshold r of BDPT prediction: closer end vertices are extended, not
-    /// predicted. Default 0.08 (the thesis's, about two mean free paths at rho = 25).
+    /// predicted. Default 0.04 (one mean free path at rho = 25; the thesis's 0.08).
     #[serde(skip_serializing_if = "is_default_r")]
     pub r: f32,
     /// Light subpaths offered to each camera end vertex in BDPT prediction, one chosen
     /// by resampling. Default 256 (picked from the pass's pool); 1 is the thesis's pairing (see engine::bdpt).
     #[serde(skip_serializing_if = "is_default_candidates")]
     pub candidates: u32,
+    /// Point-to-point samples averaged for each pair of end vertices closer than r in
+    /// BDPT prediction. Default 4 (see engine::bdpt).
+    #[serde(skip_serializing_if = "is_default_extension_samples")]
+    pub extension_samples: u32,
+}
+
+fn is_default_extension_samples(n: &u32) -> bool {
+    *n == engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES
 }
 
 fn is_default_r(r: &f32) -> bool {
@@ -257,6 +265,7 @@ impl Default for RenderDesc {
             p2p_model: None,
             r: engine::bdpt::Prediction::DEFAULT_R,
             candidates: engine::bdpt::Prediction::DEFAULT_CANDIDATES,
+            extension_samples: engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
         }
     }
 }
@@ -435,6 +444,10 @@ impl SceneFile {
         const _: () = assert!(engine::bdpt::Prediction::MAX_CANDIDATES == 4096, "the message below");
         if !(1..=engine::bdpt::Prediction::MAX_CANDIDATES).contains(&self.render.candidates) {
             return Err(range_err("render.candidates", self.render.candidates, "1 ..= 4096"));
+        }
+        const _: () = assert!(engine::bdpt::Prediction::MAX_EXTENSION_SAMPLES == 256, "the message below");
+        if !(1..=engine::bdpt::Prediction::MAX_EXTENSION_SAMPLES).contains(&self.render.extension_samples) {
+            return Err(range_err("render.extension_samples", self.render.extension_samples, "1 ..= 256"));
         }
         Ok(())
     }
@@ -655,6 +668,7 @@ impl SceneFile {
         let warning = bound.mismatch(&scene.medium);
         let integrator = Integrator::bdpt_prediction(self.settings(), Default::default(), bound, self.render.r)
             .and_then(|i| i.with_light_candidates(self.render.candidates))
+            .and_then(|i| i.with_extension_samples(self.render.extension_samples))
             .map_err(err)?;
         Ok(IntegratorSetup { integrator, warning })
     }
@@ -749,19 +763,30 @@ mod tests {
         assert!(setup.integrator.transport_prediction().is_none());
         let warn = setup.warning.unwrap();
         assert!(warn.contains("p2p-model.json") || warn.contains("p2p-model.safetensors"), "{warn}");
-        // The MLP model beside the shipped one loads from its file.
-        let mut mlp = s.clone();
-        mlp.render.p2p_model =
-            Some(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/p2p_mlp.safetensors").to_string());
-        let setup = mlp.integrator(&scene, 16).unwrap();
+        // The shipped (compiled-in) model is the MLP; the thesis's residual network
+        // beside it loads from its file.
+        let shipped = s.integrator(&scene, 16).unwrap();
+        assert!(shipped.integrator.transport_prediction().unwrap().predictor.name().contains("MLP"));
+        let mut residual = s.clone();
+        residual.render.p2p_model =
+            Some(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/p2p_residual.safetensors").to_string());
+        let setup = residual.integrator(&scene, 16).unwrap();
         assert!(setup.warning.is_none(), "{:?}", setup.warning);
-        assert!(setup.integrator.transport_prediction().unwrap().predictor.name().contains("MLP"));
+        assert!(setup.integrator.transport_prediction().unwrap().predictor.name().contains("residual"));
         let mut bad = s.clone();
         bad.render.r = -1.0;
         assert!(bad.validate().unwrap_err().to_string().contains("render.r"));
         bad.render.r = 0.08;
         bad.render.candidates = 0;
         assert!(bad.validate().unwrap_err().to_string().contains("render.candidates"));
+        bad.render.candidates = 16;
+        bad.render.extension_samples = 0;
+        assert!(bad.validate().unwrap_err().to_string().contains("render.extension_samples"));
+        // The extension samples reach the integrator.
+        let mut more = s.clone();
+        more.render.extension_samples = 9;
+        let setup = more.integrator(&scene, 16).unwrap();
+        assert_eq!(setup.integrator.transport_prediction().unwrap().extension_samples, 9);
     }
 
     #[test]

@@ -49,12 +49,16 @@
 //! and T_1 the one-segment term with the same ratio-tracked transmittance the 2k
 //! connection used (unbiased, and correlated with it). So in this mode the buffers
 //! split at order 2k + 1, not at k: low = 1 ..= 2k, high = 2k + 1 and up.
-//! Pairs closer than the distance threshold r (the thesis's 0.08, about two mean
+//! Pairs closer than the distance threshold r (default 0.04; the thesis's 0.08, about two mean
 //! free paths at rho = 25) are not predicted: the 1/d^2 of the network's answer would
-//! dominate the variance. There the subpaths are extended instead: one sample of the
-//! multi-segment transport by the bidirectional point-to-point estimator of
-//! [`crate::p2p`], which walks on from both end vertices. (The thesis dropped these
-//! pairs, a bias; extending keeps the estimate exact up to the network's error.) The
+//! dominate the variance. There the subpaths are extended instead: the multi-segment
+//! transport estimated by the bidirectional point-to-point estimator of
+//! [`crate::p2p`], which walks on from both end vertices, averaged over
+//! `Prediction::extension_samples` samples (default 4). (The thesis dropped these
+//! pairs, a bias; extending keeps the estimate exact up to the network's error.)
+//! Frontlit, where both subpaths stay near the lit face and close pairs are common,
+//! these pairs held almost all of the prediction render's variance (96 % at r = 0.08,
+//! measured in session 18), so they get more than one sample. The
 //! high term is evaluated with probability p and weighted 1/p, as in the path tracer's
 //! prediction mode. Like that mode, prediction covers the sun: sky light of orders above 2k
 //! (camera walks that escape after x_{2k}) is not added.
@@ -66,8 +70,11 @@
 //!   pairs are far apart and carry almost nothing, a few near ones carry much. With
 //!   M > 1 the camera end vertex is offered M light subpaths (its own and M - 1
 //!   more, k segments each) and one is chosen by resampled importance sampling on
-//!   the unoccluded one-segment term with its distance clamped at r, so one
-//!   prediction still serves one camera sample (`predict_high`). The renderer traces
+//!   the unoccluded one-segment term, its 1 / d^2 replaced below r by 1 / (r d)
+//!   (floored at d = r / 8): the transport between two close points grows like
+//!   1 / d, and a target flat below r left the closest pairs to be chosen rarely and
+//!   weighted high. One prediction still serves one camera sample (`predict_high`).
+//!   The renderer traces
 //!   one pool of light subpaths per pass ([`LightPool`], one per pixel) and the M - 1
 //!   are uniform picks from it, so a candidate costs a weight, not a subpath, and M
 //!   can be large (default 256). Every candidate is still distributed as a sample's
@@ -151,6 +158,8 @@ pub struct Prediction {
     /// `candidates - 1` more, one of them chosen by resampling (module docs). 1 is
     /// the thesis's pairing.
     pub candidates: u32,
+    /// Point-to-point samples averaged for a pair closer than r (>= 1; module docs).
+    pub extension_samples: u32,
 }
 
 impl std::fmt::Debug for Prediction {
@@ -161,13 +170,19 @@ impl std::fmt::Debug for Prediction {
             .field("r", &self.r)
             .field("p", &self.p)
             .field("candidates", &self.candidates)
+            .field("extension_samples", &self.extension_samples)
             .finish()
     }
 }
 
 impl Prediction {
+    /// The default distance threshold: 0.04, one mean free path at rho = 25, half the
+    /// thesis's 0.08 ([`Prediction::THESIS_R`]). With 256 pooled candidates and the
+    /// close-pair target, halving r doubled the speedups in every cell of the
+    /// evaluation at the same bias (README, sessions 18 and 19).
+    pub const DEFAULT_R: f32 = 0.04;
     /// The thesis's distance threshold (0.08, about two mean free paths at rho = 25).
-    pub const DEFAULT_R: f32 = 0.08;
+    pub const THESIS_R: f32 = 0.08;
     /// Light subpath candidates per camera end vertex by default. Picked from the
     /// pass's pool, a candidate costs a weight, not a subpath. Measured on scene A at
     /// rho 25 (`nimbus eval p2p --size 64 --spp-ref 1024 --spp 256 --k 1,2,4
@@ -179,6 +194,17 @@ impl Prediction {
     pub const DEFAULT_CANDIDATES: u32 = 256;
     /// At most this many candidates.
     pub const MAX_CANDIDATES: u32 = 4096;
+    /// Point-to-point samples per extended pair by default. Measured on scene A at
+    /// rho 25, r = 0.04, 256 candidates, the shipped MLP (`nimbus eval p2p --configs
+    /// frontlit --size 64 --spp-ref 1024 --spp 256 --k 1,2 --r 0.04`, session 19):
+    /// with the close-pair resampling target, 4 samples instead of 1 raised the
+    /// variance ratio against the estimated baseline from 6.2 / 6.6 to 11.2 / 9.9
+    /// (README).
+    pub const DEFAULT_EXTENSION_SAMPLES: u32 = 4;
+    /// At most this many extension samples.
+    pub const MAX_EXTENSION_SAMPLES: u32 = 256;
+    /// The close-pair resampling target's floor, as a fraction of r (module docs).
+    pub const CLOSE_TARGET_FLOOR: f32 = 0.125;
 
     /// The first order the high buffer holds: 2k + 1.
     pub fn first_predicted_order(&self) -> u32 {
@@ -204,6 +230,13 @@ impl Prediction {
                 "light subpath candidates must lie in 1 ..= {}, got {}",
                 Self::MAX_CANDIDATES,
                 self.candidates
+            ));
+        }
+        if !(1..=Self::MAX_EXTENSION_SAMPLES).contains(&self.extension_samples) {
+            return Err(format!(
+                "extension samples must lie in 1 ..= {}, got {}",
+                Self::MAX_EXTENSION_SAMPLES,
+                self.extension_samples
             ));
         }
         Ok(())
@@ -472,8 +505,9 @@ impl LightPool {
 /// The end vertex y is chosen among the sample's own light subpath and
 /// `candidates - 1` more (picks from `pool`, or subpaths of their own without one)
 /// by resampled importance sampling: candidate j
-/// with probability w_j / sum w, w_j = beta_j A f_p(wo, y_j) f_p(y_j) / max(d_j^2, r^2)
-/// (the unoccluded one-segment term, its distance clamped at r), weighted
+/// with probability w_j / sum w, w_j = beta_j A f_p(wo, y_j) f_p(y_j) g(d_j), g the
+/// unoccluded one-segment term's 1 / d^2 from r on and 1 / (r max(d, r / 8)) below
+/// (continuous at r; the transport between close points grows like 1 / d), weighted
 /// sum w / (M w_j). That is the M-candidate average of the thesis's estimator, so it
 /// stays unbiased for any M, while pairs whose transport is large (near ones) are
 /// picked more often than pairs it is small for: the pairing's variance, which
@@ -511,7 +545,12 @@ fn predict_high(
         // (resampling stays unbiased only then): a phase value of 0 on the direct
         // segment leaves the paths that scatter in between.
         let phases = (phase.eval(wo, dir) * phase.eval(y.wo, -dir)).max(1e-3 * INV_4PI * INV_4PI);
-        let w = y.beta * area * phases / d2.max(clamp * clamp);
+        // 1 / d^2 clamped at r, and below r 1 / (r max(d, r / 8)): the transport
+        // between two close points grows like 1 / d, and a flat target there left
+        // the few closest pairs, chosen rarely, to carry large values (module docs).
+        let floor = Prediction::CLOSE_TARGET_FLOOR * clamp;
+        let geometry = if d2 >= clamp * clamp { 1.0 / d2 } else { 1.0 / (clamp * d2.sqrt().max(floor)) };
+        let w = y.beta * area * phases * geometry;
         if w.is_finite() { w } else { 0.0 }
     };
     // The same for a whole subpath (0 if it is shorter than k).
@@ -590,12 +629,15 @@ fn predict_high(
         (Strategy::Predicted, pr.predictor.predict(medium, &q, &mut stream) - t1)
     } else {
         let mut t = 0.0f32;
-        crate::p2p::sample_transport_by_segments(medium, &q, &P2pSettings::default(), rng, &mut |k, v| {
-            if k >= 2 {
-                t += v
-            }
-        });
-        (Strategy::Extended, t)
+        let n = pr.extension_samples.max(1);
+        for _ in 0..n {
+            crate::p2p::sample_transport_by_segments(medium, &q, &P2pSettings::default(), rng, &mut |k, v| {
+                if k >= 2 {
+                    t += v
+                }
+            });
+        }
+        (Strategy::Extended, t / n as f32)
     };
     let value = sun.radiance() * (scale * t_multi);
     if value.is_finite() {
@@ -931,11 +973,19 @@ mod tests {
         pool: Option<&LightPool>,
         rng: &mut Rng,
     ) -> Option<(f32, Vec3)> {
-        let pr = Prediction { predictor: Arc::new(Unasked), segments: 1, r: 0.08, p: 1.0, candidates: m };
+        let pr = Prediction {
+            predictor: Arc::new(Unasked),
+            segments: 1,
+            r: 0.08,
+            p: 1.0,
+            candidates: m,
+            extension_samples: 1,
+        };
         let mut lp =
             LightPath { verts: [Vertex::default(); MAX_LIGHT_VERTICES as usize], len: 1, beam: -Vec3::Z, area };
         lp.verts[0] = own;
         let mut deferred = vec![];
+        let mut extended = false;
         let x = Vec3::new(0.5, 0.5, 0.1);
         predict_high(
             &pr,
@@ -950,9 +1000,14 @@ mod tests {
             rng,
             pool,
             Some(&mut deferred),
-            &mut |_| panic!("a far pair is predicted, not extended"),
+            &mut |c| {
+                assert_eq!(c.strategy, Strategy::Extended, "only a close pair reaches the sink now");
+                extended = true;
+            },
         );
         assert!(deferred.len() <= 1);
+        assert!(!(extended && !deferred.is_empty()), "one pair per camera vertex");
+        // An extended (close) pair: no deferred prediction, the emitter unknown here.
         deferred.first().map(|d| (d.scale.x, d.query.emitter))
     }
 
@@ -1001,29 +1056,41 @@ mod tests {
     }
 
     /// Which candidate is chosen: with the whole pool offered, candidate i is taken
-    /// with probability w_i / sum w (a chi-square test over 5 candidates of unequal
+    /// with probability w_i / sum w (a chi-square test over 6 candidates of unequal
     /// weight: throughputs, beam areas, distances and, with a forward-scattering phase
     /// function, the phase terms of the direct segment all differ), and the weight sum
-    /// w / (M w_i) matches the chosen one.
+    /// w / (M w_i) matches the chosen one. One candidate lies closer than r: once
+    /// between r / 8 and r (target 1 / (r d)), once below r / 8 (1 / (r r / 8)); it
+    /// is extended when chosen, so it is counted by the extension.
     #[test]
     fn resampling_chooses_in_proportion_to_the_weights() {
         let x = Vec3::new(0.5, 0.5, 0.1);
         let wo = Vec3::Y;
-        // (position, throughput, beam area); all farther from x than r = 0.08.
-        let ends: Vec<(Vertex, f32)> = [
-            (Vec3::new(0.5, 0.5, 0.9), 0.3, 2.0),
-            (Vec3::new(0.5, 0.2, 0.7), 0.3, 1.0),
-            (Vec3::new(0.9, 0.5, 0.5), 1.0, 3.0),
-            (Vec3::new(0.5, 0.8, 0.95), 2.0, 0.5),
-            (Vec3::new(0.2, 0.6, 0.6), 0.05, 4.0),
-        ]
-        .iter()
-        .map(|&(p, beta, area)| (light_end(p, beta), area))
-        .collect();
+        let r = 0.08f64;
+        for close in [Vec3::new(0.5, 0.47, 0.14), Vec3::new(0.5, 0.5, 0.104)] {
+            // (position, throughput, beam area); the first five farther from x than r.
+            let ends: Vec<(Vertex, f32)> = [
+                (Vec3::new(0.5, 0.5, 0.9), 0.3, 2.0),
+                (Vec3::new(0.5, 0.2, 0.7), 0.3, 1.0),
+                (Vec3::new(0.9, 0.5, 0.5), 1.0, 3.0),
+                (Vec3::new(0.5, 0.8, 0.95), 2.0, 0.5),
+                (Vec3::new(0.2, 0.6, 0.6), 0.05, 4.0),
+                (close, 0.004, 1.0),
+            ]
+            .iter()
+            .map(|&(p, beta, area)| (light_end(p, beta), area))
+            .collect();
+            chooses_in_proportion(x, wo, r, &ends);
+        }
+    }
+
+    fn chooses_in_proportion(x: Vec3, wo: Vec3, r: f64, ends: &[(Vertex, f32)]) {
+        let n_ends = ends.len();
         for phase in [PhaseFunction::Isotropic, PhaseFunction::HenyeyGreenstein { g: 0.6 }] {
             let cube = cube_scene(phase);
-            // w_i = beta_i area_i phase(wo, dir) phase(wo_i, -dir) / d_i^2, dir from
-            // x toward y_i (none of these phase products is near the floor).
+            // w_i = beta_i area_i phase(wo, dir) phase(wo_i, -dir) g(d_i), dir from x
+            // toward y_i (none of these phase products is near the floor), g = 1 / d^2
+            // from r on, 1 / (r max(d, r / 8)) below.
             let w: Vec<f64> = ends
                 .iter()
                 .map(|(v, area)| {
@@ -1031,26 +1098,35 @@ mod tests {
                     let dir = d.normalize();
                     let phases = phase.eval(wo, dir) as f64 * phase.eval(v.wo, -dir) as f64;
                     assert!(phases > 1e-3 * (INV_4PI as f64).powi(2));
-                    v.beta as f64 * *area as f64 * phases / d.length_squared() as f64
+                    let dist = d.length() as f64;
+                    let g = if dist >= r { 1.0 / (dist * dist) } else { 1.0 / (r * dist.max(r / 8.0)) };
+                    v.beta as f64 * *area as f64 * phases * g
                 })
                 .collect();
             let total: f64 = w.iter().sum();
-            let pool = LightPool { ends: ends[1..].to_vec(), traced: 4 };
+            let pool = LightPool { ends: ends[1..].to_vec(), traced: n_ends as u32 - 1 };
             let mut rng = Rng::new(12, 0, 0);
             let n = 40_000;
-            let mut counts = [0.0f64; 5];
+            let mut counts = vec![0.0f64; n_ends];
             for _ in 0..n {
-                let (scale, emitter) = resampled_with(&cube, 5, ends[0], Some(&pool), &mut rng).unwrap();
+                // None: the close pair, extended.
+                let Some((scale, emitter)) = resampled_with(&cube, n_ends as u32, ends[0], Some(&pool), &mut rng)
+                else {
+                    counts[n_ends - 1] += 1.0;
+                    continue;
+                };
                 let i = ends.iter().position(|(v, _)| v.x == emitter).expect("the emitter is a candidate");
                 counts[i] += 1.0;
                 // scale = beta (0.5) * y.beta * area_i * total / (M w_i) / p.
-                let want = 0.5 * ends[i].0.beta as f64 * ends[i].1 as f64 * total / (5.0 * w[i]);
+                let want = 0.5 * ends[i].0.beta as f64 * ends[i].1 as f64 * total / (n_ends as f64 * w[i]);
                 assert!((scale as f64 - want).abs() <= 1e-4 * want, "{phase:?}, candidate {i}: {scale} vs {want}");
             }
             let expected: Vec<f64> = w.iter().map(|wi| n as f64 * wi / total).collect();
             assert!(expected.iter().all(|e| *e > 100.0), "{expected:?}");
             let chi2 = crate::stats::chi2_test(&counts, &expected, 5.0);
             assert!(chi2.p_value > 1e-3, "{phase:?}: choices {counts:?} vs {expected:?}: {chi2:?}");
+            // The close candidate's share is not negligible (the test sees its target).
+            assert!(expected[n_ends - 1] > 0.05 * n as f64, "{expected:?}");
         }
     }
 }

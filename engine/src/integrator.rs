@@ -177,6 +177,7 @@ impl Integrator {
             r,
             p,
             candidates: crate::bdpt::Prediction::DEFAULT_CANDIDATES,
+            extension_samples: crate::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
         };
         prediction.validate().map_err(IntegratorError::BadBdpt)?;
         Ok(Integrator { settings, predictor: None, technique: Technique::Bdpt(b), transport: Some(prediction) })
@@ -189,6 +190,18 @@ impl Integrator {
             return Err(IntegratorError::BadBdpt("light subpath candidates need BDPT's prediction mode".into()));
         };
         pr.candidates = m;
+        pr.validate().map_err(IntegratorError::BadBdpt)?;
+        Ok(self)
+    }
+
+    /// BDPT prediction averaging `n` point-to-point samples for each pair closer
+    /// than r (see [`crate::bdpt::Prediction::extension_samples`]); an error outside
+    /// prediction mode.
+    pub fn with_extension_samples(mut self, n: u32) -> Result<Self, IntegratorError> {
+        let Some(pr) = self.transport.as_mut() else {
+            return Err(IntegratorError::BadBdpt("extension samples need BDPT's prediction mode".into()));
+        };
+        pr.extension_samples = n;
         pr.validate().map_err(IntegratorError::BadBdpt)?;
         Ok(self)
     }

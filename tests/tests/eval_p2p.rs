@@ -20,6 +20,7 @@ fn args(out: PathBuf) -> EvalP2pArgs {
         p: 1.0,
         r: 0.08,
         candidates: 1,
+        extension_samples: engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
         cloud: "scene-a".into(),
         res: 64,
         model: None,

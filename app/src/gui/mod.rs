@@ -686,6 +686,15 @@ impl NimbusApp {
                          thesis's pairing; the others are picked from a pool traced once per pass, so more \
                          lower the noise for little cost",
                     );
+                    let max_n = engine::bdpt::Prediction::MAX_EXTENSION_SAMPLES;
+                    ui.add(
+                        egui::Slider::new(&mut self.scene.render.extension_samples, 1..=max_n)
+                            .logarithmic(true)
+                            .text("samples per close pair"),
+                    )
+                    .on_hover_text(
+                        "point-to-point samples averaged where the end vertices are closer than r (those pairs                          carry most of the noise when the sun is behind the camera)",
+                    );
                 }
                 ui.checkbox(&mut self.compare, "compare with path tracing")
                     .on_hover_text("reference and prediction side by side, with the low, high and error buffers");
