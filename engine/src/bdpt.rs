@@ -534,7 +534,7 @@ fn predict_high(
     let k = pr.segments as usize;
     let first = pr.first_predicted_order();
     // The clamp distance: r, or with r = infinity (every pair extended) the cloud's
-    // diagonal, which no pair exceeds (uniform weights but for the phase terms).
+    // diagonal D, which no pair exceeds (then the target is 1 / (D max(d, D / 8))).
     let clamp = pr.r.min(medium.bounds().extent().length()).max(1e-6);
     // The resampling weight of a light subpath's end vertex y (beam area `area`).
     let weight_of = |y: &Vertex, area: f32| -> f32 {
@@ -951,8 +951,18 @@ mod tests {
         Vertex { x, wo: Vec3::Z, beta, sigma_t: 10.0 }
     }
 
+    /// What the high-order term of one camera end vertex did.
+    enum Outcome {
+        /// A far pair, deferred: the prediction's scale (one channel) and emitter.
+        Predicted(f32, Vec3),
+        /// A pair closer than r, extended.
+        Extended,
+        /// No candidate with a non-zero weight.
+        Nothing,
+    }
+
     /// Runs the high-order term of one camera end vertex (at (0.5, 0.5, 0.1), far
-    /// enough from every light end vertex used here to be predicted) with M
+    /// enough from every light end vertex these callers use to be predicted) with M
     /// candidates and `pool`; returns the deferred prediction's scale (one channel)
     /// and its emitter.
     fn resampled(
@@ -962,17 +972,22 @@ mod tests {
         pool: Option<&LightPool>,
         rng: &mut Rng,
     ) -> Option<(f32, Vec3)> {
-        resampled_with(cube, m, (own, 2.0), pool, rng)
+        match resampled_with(cube, m, (own, 2.0), pool, rng) {
+            Outcome::Predicted(scale, emitter) => Some((scale, emitter)),
+            Outcome::Extended => panic!("a far pair is predicted, not extended"),
+            Outcome::Nothing => None,
+        }
     }
 
-    /// [`resampled`] with the own subpath's beam area.
+    /// The high-order term of the camera end vertex at (0.5, 0.5, 0.1) with the own
+    /// subpath's beam area given.
     fn resampled_with(
         (scene, sun): &(Scene, crate::light::Sun),
         m: u32,
         (own, area): (Vertex, f32),
         pool: Option<&LightPool>,
         rng: &mut Rng,
-    ) -> Option<(f32, Vec3)> {
+    ) -> Outcome {
         let pr = Prediction {
             predictor: Arc::new(Unasked),
             segments: 1,
@@ -1006,9 +1021,12 @@ mod tests {
             },
         );
         assert!(deferred.len() <= 1);
-        assert!(!(extended && !deferred.is_empty()), "one pair per camera vertex");
-        // An extended (close) pair: no deferred prediction, the emitter unknown here.
-        deferred.first().map(|d| (d.scale.x, d.query.emitter))
+        match (deferred.first(), extended) {
+            (Some(d), false) => Outcome::Predicted(d.scale.x, d.query.emitter),
+            (None, true) => Outcome::Extended,
+            (None, false) => Outcome::Nothing,
+            (Some(_), true) => panic!("one pair per camera vertex, predicted or extended"),
+        }
     }
 
     /// White-box check of the resampling weight sum w / (M w_chosen): M counts every
@@ -1109,11 +1127,14 @@ mod tests {
             let n = 40_000;
             let mut counts = vec![0.0f64; n_ends];
             for _ in 0..n {
-                // None: the close pair, extended.
-                let Some((scale, emitter)) = resampled_with(&cube, n_ends as u32, ends[0], Some(&pool), &mut rng)
-                else {
-                    counts[n_ends - 1] += 1.0;
-                    continue;
+                let (scale, emitter) = match resampled_with(&cube, n_ends as u32, ends[0], Some(&pool), &mut rng) {
+                    Outcome::Predicted(scale, emitter) => (scale, emitter),
+                    // The close pair (the only one closer than r).
+                    Outcome::Extended => {
+                        counts[n_ends - 1] += 1.0;
+                        continue;
+                    }
+                    Outcome::Nothing => panic!("every candidate has a non-zero weight"),
                 };
                 let i = ends.iter().position(|(v, _)| v.x == emitter).expect("the emitter is a candidate");
                 counts[i] += 1.0;

@@ -718,12 +718,19 @@ impl P2pFeatures {
             let mut points = [Vec3::ZERO; 32];
             let total = (n * n * n) as usize;
             let mut done = 0;
+            // Grid point k = (a n + b) n + c, counted without dividing.
+            let (mut a, mut b, mut c) = (0, 0, 0);
             while done < total {
                 let m = (total - done).min(points.len());
-                for (j, p) in points[..m].iter_mut().enumerate() {
-                    let k = (done + j) as u32;
-                    let (a, b, c) = (k / (n * n), (k / n) % n, k % n);
+                for p in &mut points[..m] {
                     *p = frame.to_world(origin + extent * Vec3::new(g(a), g(b), g(c)));
+                    c += 1;
+                    if c == n {
+                        (b, c) = (b + 1, 0);
+                        if b == n {
+                            (a, b) = (a + 1, 0);
+                        }
+                    }
                 }
                 let dst = &mut out[i + done..i + done + m];
                 pyramid.lookup_many(sel, &points[..m], dst);

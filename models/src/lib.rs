@@ -5,6 +5,7 @@ pub mod datagen;
 pub mod density_features;
 pub mod depth_field;
 pub mod directions;
+pub mod fastmath;
 pub mod features;
 pub mod global;
 pub mod ground_truth;

@@ -168,9 +168,7 @@ impl P2pModel {
     /// The network's input from raw features: ln(1 + x), standardized.
     fn standardize(&self, raw: &[f32], input: &mut [f32]) {
         let s = &self.sidecar;
-        for (i, (x, v)) in input.iter_mut().zip(raw).enumerate() {
-            *x = (v.max(0.0).ln_1p() - s.feature_mean[i]) / s.feature_std[i];
-        }
+        crate::fastmath::standardize(raw, &s.feature_mean, &s.feature_std, input);
     }
 
     /// T in world units from the network's output for a pair `frame_scale` apart.
@@ -361,7 +359,7 @@ pub fn train(
             if !(tr[4] > 0.0 && tr[4].is_finite()) || fr.iter().any(|v| !v.is_finite()) {
                 continue;
             }
-            x.extend(fr.iter().map(|v| v.max(0.0).ln_1p()));
+            x.extend(fr.iter().map(|v| crate::fastmath::ln_1p(*v)));
             y.push(tr[4].ln());
             group.push((di as u64) << 40 | (r / s.rotations as usize) as u64);
         }

@@ -201,10 +201,16 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
         let integ = predicting_with(60 + i as u64, k, r, p, m, n);
         assert_eq!(integ.high_order_start(), 2 * k + 1);
         // The thesis's pairing (m = 1) joins close pairs as often as the geometry
-        // makes them, and their transport grows like 1 / d: finite variance but an
-        // infinite third moment, so the mean's error is skewed and a z-test at the
-        // base count undercovers (session 19: z -3.7 at 6,000 passes, -1.7 at
-        // 24,000 for the same run). Four times the passes there.
+        // makes them, and the transport between two close points grows like 1 / d:
+        // the extension's values are heavy-tailed (at best a finite variance with an
+        // infinite third moment; the variance itself may diverge slowly as pairs
+        // get closer), so the mean's error is skewed and a z-test at the base count
+        // undercovers. Session 19: the first run (same seed; its extension now
+        // averaging 4 samples, so another stream) gave z -3.7 at 6,000 passes and
+        // -1.7 at 24,000, whose first 6,000 are the same samples: the later ones
+        // brought the rare large values. Four times the passes for these runs;
+        // with candidates (m > 1) the close-pair target samples them in proportion
+        // to 1 / d, which tames the tail.
         let passes = if m == 1 { 4 * passes } else { passes };
         let pt = averages(
             &scene,

@@ -97,6 +97,29 @@ fn bad_input_gives_clear_messages() {
     let e = format!("{:#}", nimbus(&["render", s(&bad_range), "--out", s(&out)]).unwrap_err());
     assert!(e.contains("medium.albedo = 2 is out of range: 0 ..= 1"), "{e}");
 
+    // A BDPT prediction option out of range is named (here before any rendering).
+    let ok = dir.join("ok.toml");
+    std::fs::write(&ok, "[grid]\nbuiltin = \"sphere\"\nresolution = 16\n[camera]\nwidth = 8\nheight = 8\n").unwrap();
+    let e = format!(
+        "{:#}",
+        nimbus(&[
+            "render",
+            s(&ok),
+            "--integrator",
+            "bdpt",
+            "--predict",
+            "1",
+            "--extension-samples",
+            "0",
+            "--spp",
+            "1",
+            "--out",
+            s(&out)
+        ])
+        .unwrap_err()
+    );
+    assert!(e.contains("extension_samples") || e.contains("extension samples"), "{e}");
+
     let garbage = dir.join("garbage.toml");
     std::fs::write(&garbage, [0xffu8, 0xfe, 0x00, 0x12]).unwrap();
     assert!(nimbus(&["render", s(&garbage), "--out", s(&out)]).is_err());

@@ -75,6 +75,15 @@ fn small_p2p_evaluation_runs_end_to_end() {
         assert!(c.secs_free > 0.0 && c.free_ceiling.is_finite() && c.free_ceiling > 0.0, "{c:?}");
     }
     assert!(resampled[0].ttuv_pred_high != cells[0].ttuv_pred_high);
+    // Renders with candidates are cached under the extension samples too (pooled
+    // renders of earlier sessions, made with another resampling target, have no such
+    // suffix and are not reused).
+    let names: Vec<String> = std::fs::read_dir(out.join("cache"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    let x = format!("_pool4_x{}_", engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES);
+    assert!(names.iter().any(|n| n.contains("_estimated_") && n.contains(&x)), "{names:?}");
     // The reference is shared: read back from the cache here, so equal to the digit
     // its timing survives JSON (serde_json's default float parser may miss the last
     // bit), where a re-render would differ in timing by far more.

@@ -693,7 +693,8 @@ impl NimbusApp {
                             .text("samples per close pair"),
                     )
                     .on_hover_text(
-                        "point-to-point samples averaged where the end vertices are closer than r (those pairs                          carry most of the noise when the sun is behind the camera)",
+                        "point-to-point samples averaged where the end vertices are closer than r (those pairs \
+                         carry most of the noise when the sun is behind the camera)",
                     );
                 }
                 ui.checkbox(&mut self.compare, "compare with path tracing")
