@@ -15,8 +15,8 @@
 /// Bits of sqrt(1/2): mantissas are reduced into [sqrt(1/2), sqrt(2)).
 const SQRT_HALF_BITS: i32 = 0x3f35_04f3;
 /// ln 2 split (fdlibm's) so that e ln2_hi is exact for the exponents of a float.
-const LN2_HI: f32 = 6.931_381_2e-1;
-const LN2_LO: f32 = 9.058_000_6e-6;
+const LN2_HI: f32 = f32::from_bits(0x3f31_7180); // 6.9313812256e-1
+const LN2_LO: f32 = f32::from_bits(0x3717_f7d1); // 9.0580006145e-6
 const C3: f32 = 2.0 / 3.0;
 const C5: f32 = 2.0 / 5.0;
 const C7: f32 = 2.0 / 7.0;

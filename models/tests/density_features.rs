@@ -100,7 +100,7 @@ fn local_frame_maps_emitter_and_sensor() {
     for _ in 0..100 {
         let r = |rng: &mut Rng| Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 2.0 - 1.0;
         let (e, s, q) = (r(&mut rng), r(&mut rng), r(&mut rng));
-        let angle = 6.283 * rng.uniform();
+        let angle = std::f32::consts::TAU * rng.uniform();
         let f = LocalFrame::new(e, s, angle).unwrap();
         assert!((f.to_local(e) - Vec3::new(0.0, 0.0, -0.5)).length() < 1e-5);
         assert!((f.to_local(s) - Vec3::new(0.0, 0.0, 0.5)).length() < 1e-5);
