@@ -129,7 +129,7 @@ pub struct RenderArgs {
     #[arg(long)]
     pub candidates: Option<u32>,
     /// Point-to-point samples for each pair of end vertices closer than r in BDPT
-    /// prediction (default 4).
+    /// prediction (default 8).
     #[arg(long)]
     pub extension_samples: Option<u32>,
 }

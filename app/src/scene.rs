@@ -234,7 +234,7 @@ pub struct RenderDesc {
     #[serde(skip_serializing_if = "is_default_candidates")]
     pub candidates: u32,
     /// Point-to-point samples averaged for each pair of end vertices closer than r in
-    /// BDPT prediction. Default 4 (see engine::bdpt).
+    /// BDPT prediction. Default 8 (see engine::bdpt).
     #[serde(skip_serializing_if = "is_default_extension_samples")]
     pub extension_samples: u32,
 }

@@ -54,7 +54,7 @@
 //! dominate the variance. There the subpaths are extended instead: the multi-segment
 //! transport estimated by the bidirectional point-to-point estimator of
 //! [`crate::p2p`], which walks on from both end vertices, averaged over
-//! `Prediction::extension_samples` samples (default 4). (The thesis dropped these
+//! `Prediction::extension_samples` samples (default 8). (The thesis dropped these
 //! pairs, a bias; extending keeps the estimate exact up to the network's error.)
 //! Frontlit, where both subpaths stay near the lit face and close pairs are common,
 //! these pairs held almost all of the prediction render's variance (96 % at r = 0.08,
@@ -195,12 +195,13 @@ impl Prediction {
     /// At most this many candidates.
     pub const MAX_CANDIDATES: u32 = 4096;
     /// Point-to-point samples per extended pair by default. Measured on scene A at
-    /// rho 25, r = 0.04, 256 candidates, the shipped MLP (`nimbus eval p2p --configs
-    /// frontlit --size 64 --spp-ref 1024 --spp 256 --k 1,2 --r 0.04`, session 19):
-    /// with the close-pair resampling target, 4 samples instead of 1 raised the
-    /// variance ratio against the estimated baseline from 6.2 / 6.6 to 11.2 / 9.9
-    /// (README).
-    pub const DEFAULT_EXTENSION_SAMPLES: u32 = 4;
+    /// rho 25, r = 0.04, 256 candidates (`nimbus eval p2p --size 96 --spp-ref 4096
+    /// --spp 1024 --extension-samples N`, session 19, README): with the close-pair
+    /// resampling target, 4 samples instead of 1 cut the frontlit prediction render's
+    /// TTUV 1.6-2.8x (64x64 study), and 8 instead of 4 lowered it further in 21 of
+    /// the evaluation's 24 cells (three models; up to 1.25x) and raised the ratio
+    /// against full BDPT in 21, the estimated baseline's TTUV within -3 .. +8 %.
+    pub const DEFAULT_EXTENSION_SAMPLES: u32 = 8;
     /// At most this many extension samples.
     pub const MAX_EXTENSION_SAMPLES: u32 = 256;
     /// The close-pair resampling target's floor, as a fraction of r (module docs).

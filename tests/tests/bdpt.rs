@@ -178,7 +178,7 @@ fn predicting_with(seed: u64, k: u32, r: f32, p: f32, m: u32, n: u32) -> Integra
 /// subpath candidates per camera end vertex (resampled pairing), each candidate its
 /// own light subpath; and with candidates from a pool the pass's samples share (as
 /// in the renderer): 32 picked from 256 subpaths, and 16 from 12 (all 12 taken).
-/// Extended pairs average the default 4 point-to-point samples, and 1 in a second
+/// Extended pairs average the default 8 point-to-point samples, and 1 in a second
 /// all-extended run.
 #[test]
 fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
