@@ -196,11 +196,12 @@ impl Prediction {
     pub const MAX_CANDIDATES: u32 = 4096;
     /// Point-to-point samples per extended pair by default. Measured on scene A at
     /// rho 25, r = 0.04, 256 candidates (`nimbus eval p2p --size 96 --spp-ref 4096
-    /// --spp 1024 --extension-samples N`, session 19, README): with the close-pair
-    /// resampling target, 4 samples instead of 1 cut the frontlit prediction render's
-    /// TTUV 1.6-2.8x (64x64 study), and 8 instead of 4 lowered it further in 21 of
-    /// the evaluation's 24 cells (three models; up to 1.25x) and raised the ratio
-    /// against full BDPT in 21, the estimated baseline's TTUV within -3 .. +8 %.
+    /// --spp 1024 --extension-samples N`, session 19, README): the close-pair
+    /// resampling target with 4 samples, against the flat target with 1, cut the
+    /// frontlit prediction render's TTUV 1.6-2.8x (64x64 study; 4 samples against 1
+    /// with the same target: 1.6-1.7x), and 8 instead of 4 lowered it further in 21
+    /// of the evaluation's 24 cells (three models; up to 1.25x), the estimated
+    /// baseline's TTUV within -3 .. +8 %.
     pub const DEFAULT_EXTENSION_SAMPLES: u32 = 8;
     /// At most this many extension samples.
     pub const MAX_EXTENSION_SAMPLES: u32 = 256;

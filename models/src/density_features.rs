@@ -829,6 +829,54 @@ mod tests {
         assert!(inside > 1000 && border > 1000, "{inside} {border}");
     }
 
+    /// The features come in the documented order, level by level (local levels from
+    /// the smallest, emitter then sensor; then the global ones), and within a level
+    /// grid point k = (a n + b) n + c at origin + extent (g(a), g(b), g(c)), also
+    /// across the 32-point chunks the lookups go in (n = 4: 64 points, n = 5: 125).
+    #[test]
+    fn features_follow_the_grid_order() {
+        let grid = DensityGrid::from_fn(
+            glam::UVec3::splat(24),
+            engine::Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)),
+            |p| (1.0 - 2.0 * p.length()).max(0.0) * (1.6 + (7.0 * p.x + 3.0 * p.y).sin() + p.z),
+        )
+        .unwrap();
+        let spec = P2pFeatures { n_local: 4, n_global: 5, local_levels: 2, global_levels: 2 };
+        let pyramid = pyramid_for(&grid, &spec, 2.0);
+        let frame = LocalFrame::new(Vec3::new(-0.1, 0.05, 0.0), Vec3::new(0.15, -0.05, 0.1), 0.7).unwrap();
+        let rho = 25.0;
+        let mut out = vec![0.0; spec.len()];
+        spec.write(&pyramid, rho, 0.99, &frame, &mut out);
+        let mut want = vec![];
+        let mut level = |origin: Vec3, n: u32, l: i32| {
+            let extent = 2f32.powi(l);
+            let sel = pyramid.select(extent / (n - 1) as f32 * frame.scale);
+            let g = |k: u32| 2.0 * k as f32 / (n - 1) as f32 - 1.0;
+            for k in 0..n * n * n {
+                let (a, b, c) = (k / (n * n), (k / n) % n, k % n);
+                let p = frame.to_world(origin + extent * Vec3::new(g(a), g(b), g(c)));
+                want.push(pyramid.lookup_in(sel, p) * (frame.scale * rho));
+            }
+        };
+        let (xe, xs) = (Vec3::new(0.0, 0.0, -0.5), Vec3::new(0.0, 0.0, 0.5));
+        for l in (0..2).rev() {
+            level(xe, 4, -l - 1);
+            level(xs, 4, -l - 1);
+        }
+        for l in 0..2 {
+            level(Vec3::ZERO, 5, l);
+        }
+        assert_eq!(want.len(), spec.densities());
+        for (i, (a, b)) in out.iter().zip(&want).enumerate() {
+            assert_eq!(a.to_bits(), b.to_bits(), "feature {i}: {a} vs {b}");
+        }
+        // The points see the cloud, and its densities differ from point to point.
+        let mut distinct: Vec<u32> = want.iter().filter(|v| **v > 0.0).map(|v| v.to_bits()).collect();
+        distinct.sort_unstable();
+        distinct.dedup();
+        assert!(distinct.len() > want.len() / 2, "{} distinct of {}", distinct.len(), want.len());
+    }
+
     /// The many-point lookup (AVX2 for 16-bit samples where the CPU has it, else the
     /// prefetching portable one) gives exactly the single lookups, for one level and
     /// for blends, with points inside, on the border, outside, infinite and NaN, in

@@ -5,8 +5,9 @@
 //! time (perf, session 19). Here the same polynomial runs as portable scalar code and
 //! as AVX2, operation for operation and without fused multiply-adds, so both give the
 //! same bits and a render does not depend on the CPU it ran on. Against the exact
-//! value the error is within a few units in the last place (tested), far below what
-//! the network resolves; the training data's ln_1p (libm) differs from it by as much.
+//! value the error is within 2 units in the last place (tested; 1.0 measured), far
+//! below what the network resolves. Training uses it too; the shipped models were
+//! trained with libm's ln_1p, which differs from it by as little.
 //!
 //! Method: u = 1 + x rounded, ln(1 + x) = ln(u) + (x - (u - 1)) / u (the second term
 //! undoes the rounding of u); u = m 2^e with m in [sqrt(1/2), sqrt(2)), ln(m) =
@@ -143,17 +144,25 @@ mod tests {
         #[cfg(target_arch = "x86_64")]
         println!("AVX2: {}", std::arch::is_x86_feature_detected!("avx2"));
         let mut rng = engine::Rng::new(6, 0, 0);
-        let n = 352;
-        let mut raw: Vec<f32> = (0..n).map(|_| 10f32.powf(-4.0 + 9.0 * rng.uniform())).collect();
-        raw[3] = f32::NAN;
-        raw[9] = -2.0;
-        raw[17] = f32::INFINITY;
-        raw[350] = 0.0;
-        let mean: Vec<f32> = (0..n).map(|_| 3.0 * rng.uniform()).collect();
-        let std: Vec<f32> = (0..n).map(|_| 0.1 + rng.uniform()).collect();
+        // 352 = 44 full groups; 355 and 5 end in a short tail (5: nothing but one).
+        for n in [352usize, 355, 5] {
+            let mut raw: Vec<f32> = (0..n).map(|_| 10f32.powf(-4.0 + 9.0 * rng.uniform())).collect();
+            raw[1] = f32::NAN;
+            raw[2] = -2.0;
+            raw[3] = f32::INFINITY;
+            raw[4] = -0.0;
+            raw[n - 2] = 0.0;
+            let mean: Vec<f32> = (0..n).map(|_| 3.0 * rng.uniform()).collect();
+            let std: Vec<f32> = (0..n).map(|_| 0.1 + rng.uniform()).collect();
+            standardize_matches(&raw, &mean, &std);
+        }
+    }
+
+    fn standardize_matches(raw: &[f32], mean: &[f32], std: &[f32]) {
+        let n = raw.len();
         let (mut a, mut b) = (vec![0.0; n], vec![0.0; n]);
-        standardize(&raw, &mean, &std, &mut a);
-        standardize_portable(&raw, &mean, &std, &mut b);
+        standardize(raw, mean, std, &mut a);
+        standardize_portable(raw, mean, std, &mut b);
         for i in 0..n {
             assert_eq!(a[i].to_bits(), b[i].to_bits(), "{i}: {} vs {}", a[i], b[i]);
             let want = ((raw[i].max(0.0) as f64).ln_1p() - mean[i] as f64) / std[i] as f64;

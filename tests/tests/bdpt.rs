@@ -205,8 +205,8 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
         // the extension's values are heavy-tailed (at best a finite variance with an
         // infinite third moment; the variance itself may diverge slowly as pairs
         // get closer), so the mean's error is skewed and a z-test at the base count
-        // undercovers. Session 19: the first run (same seed; its extension now
-        // averaging 4 samples, so another stream) gave z -3.7 at 6,000 passes and
+        // undercovers. Session 19: the first run (same seed; its extension then
+        // averaging the default 4 samples, so another stream) gave z -3.7 at 6,000 passes and
         // -1.7 at 24,000, whose first 6,000 are the same samples: the later ones
         // brought the rare large values. Four times the passes for these runs;
         // with candidates (m > 1) the close-pair target samples them in proportion
