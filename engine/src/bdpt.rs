@@ -538,6 +538,7 @@ fn predict_high(
     // The clamp distance: r, or with r = infinity (every pair extended) the cloud's
     // diagonal D, which no pair exceeds (then the target is 1 / (D max(d, D / 8))).
     let clamp = pr.r.min(medium.bounds().extent().length()).max(1e-6);
+    let (clamp2, floor) = (clamp * clamp, Prediction::CLOSE_TARGET_FLOOR * clamp);
     // The resampling weight of a light subpath's end vertex y (beam area `area`).
     let weight_of = |y: &Vertex, area: f32| -> f32 {
         let dv = y.x - x;
@@ -550,8 +551,7 @@ fn predict_high(
         // 1 / d^2 clamped at r, and below r 1 / (r max(d, r / 8)): the transport
         // between two close points grows like 1 / d, and a flat target there left
         // the few closest pairs, chosen rarely, to carry large values (module docs).
-        let floor = Prediction::CLOSE_TARGET_FLOOR * clamp;
-        let geometry = if d2 >= clamp * clamp { 1.0 / d2 } else { 1.0 / (clamp * d2.sqrt().max(floor)) };
+        let geometry = if d2 >= clamp2 { 1.0 / d2 } else { 1.0 / (clamp * d2.sqrt().max(floor)) };
         let w = y.beta * area * phases * geometry;
         if w.is_finite() { w } else { 0.0 }
     };
