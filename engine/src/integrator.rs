@@ -185,23 +185,28 @@ impl Integrator {
 
     /// BDPT prediction with `m` light subpath candidates per camera end vertex (see
     /// [`crate::bdpt::Prediction::candidates`]); an error outside prediction mode.
-    pub fn with_light_candidates(mut self, m: u32) -> Result<Self, IntegratorError> {
-        let Some(pr) = self.transport.as_mut() else {
-            return Err(IntegratorError::BadBdpt("light subpath candidates need BDPT's prediction mode".into()));
-        };
-        pr.candidates = m;
-        pr.validate().map_err(IntegratorError::BadBdpt)?;
-        Ok(self)
+    pub fn with_light_candidates(self, m: u32) -> Result<Self, IntegratorError> {
+        self.with_prediction("light subpath candidates", |pr| pr.candidates = m)
     }
 
     /// BDPT prediction averaging `n` point-to-point samples for each pair closer
     /// than r (see [`crate::bdpt::Prediction::extension_samples`]); an error outside
     /// prediction mode.
-    pub fn with_extension_samples(mut self, n: u32) -> Result<Self, IntegratorError> {
+    pub fn with_extension_samples(self, n: u32) -> Result<Self, IntegratorError> {
+        self.with_prediction("extension samples", |pr| pr.extension_samples = n)
+    }
+
+    /// The same integrator with one setting of BDPT's prediction changed by `edit`
+    /// and validated; `what` names the setting when there is no prediction to change.
+    fn with_prediction(
+        mut self,
+        what: &str,
+        edit: impl FnOnce(&mut crate::bdpt::Prediction),
+    ) -> Result<Self, IntegratorError> {
         let Some(pr) = self.transport.as_mut() else {
-            return Err(IntegratorError::BadBdpt("extension samples need BDPT's prediction mode".into()));
+            return Err(IntegratorError::BadBdpt(format!("{what} need BDPT's prediction mode")));
         };
-        pr.extension_samples = n;
+        edit(pr);
         pr.validate().map_err(IntegratorError::BadBdpt)?;
         Ok(self)
     }
