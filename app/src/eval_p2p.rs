@@ -74,8 +74,9 @@ pub struct EvalP2pArgs {
     /// The single-cloud model (default: the shipped one).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// A model trained on all twelve clouds of the cloud set (`nimbus train p2p` on
-    /// `datagen p2p --cloud set-01` .. `set-12`), evaluated beside the single one.
+    /// A model trained on twelve clouds with the evaluated one among them, as the
+    /// thesis's multi model was (README: scene-a and set-01 .. set-11), evaluated
+    /// beside the single one.
     #[arg(long)]
     pub multi_model: Option<PathBuf>,
     /// More models to evaluate beside them, NAME=PATH (e.g. mlp=out/mlp.safetensors);

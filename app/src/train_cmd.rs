@@ -45,8 +45,12 @@ pub struct TrainP2pArgs {
     pub epochs: usize,
     #[arg(long, default_value_t = 250)]
     pub batch: usize,
+    /// Learning rate of the first epoch.
     #[arg(long, default_value_t = 1e-3)]
     pub lr: f64,
+    /// Learning-rate factor per epoch (1: constant, as the shipped models were trained).
+    #[arg(long, default_value_t = 1.0)]
+    pub lr_decay: f64,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     #[arg(long)]
@@ -68,12 +72,16 @@ fn train_p2p(args: TrainP2pArgs) -> Result<()> {
     if args.epochs == 0 || args.batch == 0 || !(args.lr > 0.0) {
         bail!("--epochs, --batch and --lr must be positive");
     }
+    if !(args.lr_decay > 0.0 && args.lr_decay <= 1.0) {
+        bail!("--lr-decay must be in (0, 1], not {}", args.lr_decay);
+    }
     init_threads(args.threads)?;
     let cfg = models::p2p_train::P2pTrainConfig {
         arch,
         epochs: args.epochs,
         batch: args.batch,
         lr: args.lr,
+        lr_decay: args.lr_decay,
         seed: args.seed,
         ..Default::default()
     };

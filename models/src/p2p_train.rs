@@ -66,6 +66,9 @@ pub struct P2pSidecar {
     pub g: f32,
     pub data: Vec<String>,
     pub epochs: usize,
+    /// Learning-rate factor per epoch (1: constant, what models before it had).
+    #[serde(default = "constant_lr")]
+    pub lr_decay: f64,
     pub test_mse: f64,
     /// Median and 90th percentile of |predicted T / true T - 1| on the test points.
     pub test_rel_error_median: f64,
@@ -77,15 +80,30 @@ pub struct P2pTrainConfig {
     pub arch: P2pArch,
     pub epochs: usize,
     pub batch: usize,
+    /// Learning rate of the first epoch.
     pub lr: f64,
+    /// Learning-rate factor per epoch: epoch e (from 0) trains at lr x lr_decay^e.
+    pub lr_decay: f64,
     pub seed: u64,
     pub test_fraction: f64,
 }
 
 impl Default for P2pTrainConfig {
     fn default() -> Self {
-        P2pTrainConfig { arch: P2pArch::default(), epochs: 20, batch: 250, lr: 1e-3, seed: 1, test_fraction: 0.2 }
+        P2pTrainConfig {
+            arch: P2pArch::default(),
+            epochs: 20,
+            batch: 250,
+            lr: 1e-3,
+            lr_decay: 1.0,
+            seed: 1,
+            test_fraction: 0.2,
+        }
     }
+}
+
+fn constant_lr() -> f64 {
+    1.0
 }
 
 fn err(e: impl std::fmt::Display) -> String {
@@ -310,6 +328,8 @@ struct CheckpointKey {
     arch: ArchDesc,
     batch: usize,
     lr: f64,
+    #[serde(default = "constant_lr")]
+    lr_decay: f64,
     seed: u64,
     test_fraction: f64,
     data: Vec<String>,
@@ -421,6 +441,7 @@ pub fn train(
         arch: (&cfg.arch).into(),
         batch: cfg.batch,
         lr: cfg.lr,
+        lr_decay: cfg.lr_decay,
         seed: cfg.seed,
         test_fraction: cfg.test_fraction,
         data: dirs.iter().map(|d| d.display().to_string()).collect(),
@@ -454,8 +475,9 @@ pub fn train(
                 cfg.epochs
             ));
         }
+        let lr = cfg.lr * cfg.lr_decay.powi(epoch as i32);
         let train_mse =
-            net.fit_epoch(&xtr, &ytr, cfg.batch, cfg.lr, cfg.seed.wrapping_add(epoch as u64), &mut opt).map_err(err)?;
+            net.fit_epoch(&xtr, &ytr, cfg.batch, lr, cfg.seed.wrapping_add(epoch as u64), &mut opt).map_err(err)?;
         let test = eval_mse(&net)?;
         history.push((epoch as f64 + 1.0, train_mse, test));
         let mut tensors = std::collections::HashMap::new();
@@ -496,6 +518,7 @@ pub fn train(
         g,
         data: dirs.iter().map(|d| d.display().to_string()).collect(),
         epochs: cfg.epochs,
+        lr_decay: cfg.lr_decay,
         test_mse: history.last().map(|h| h.2).unwrap_or(f64::NAN),
         test_rel_error_median: rel[rel.len() / 2],
         test_rel_error_p90: rel[(rel.len() * 9 / 10).min(rel.len() - 1)],

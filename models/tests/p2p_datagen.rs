@@ -119,6 +119,7 @@ fn deterministic_resumable_and_shardable() {
         arch: models::p2p_net::P2pArch::Residual { width: 16, layers: 2 },
         epochs: 3,
         batch: 4,
+        lr_decay: 0.5,
         test_fraction: 0.3,
         ..Default::default()
     };
@@ -136,10 +137,25 @@ fn deterministic_resumable_and_shardable() {
         std::fs::read(a.join("model2/m.safetensors")).unwrap(),
         "resumed training differs"
     );
-    // A checkpoint of other settings is refused.
-    let other = models::p2p_train::P2pTrainConfig { lr: 0.5, ..cfg.clone() };
-    let e = models::p2p_train::train(&[a.clone()], &other, &out2, true, &never, &|_, _| {}).unwrap_err();
-    assert!(e.contains("other settings"), "{e}");
+    // A checkpoint of other settings is refused, the learning-rate decay included.
+    for other in [
+        models::p2p_train::P2pTrainConfig { lr: 0.5, ..cfg.clone() },
+        models::p2p_train::P2pTrainConfig { lr_decay: 1.0, ..cfg.clone() },
+    ] {
+        let e = models::p2p_train::train(&[a.clone()], &other, &out2, true, &never, &|_, _| {}).unwrap_err();
+        assert!(e.contains("other settings"), "{e}");
+    }
+    // The decay is applied (with a constant rate the second and third epochs train
+    // other weights) and recorded in the sidecar.
+    let out3 = a.join("model3/m");
+    let constant = models::p2p_train::P2pTrainConfig { lr_decay: 1.0, ..cfg.clone() };
+    models::p2p_train::train(&[a.clone()], &constant, &out3, false, &never, &|_, _| {}).unwrap();
+    assert_ne!(
+        std::fs::read(a.join("model/m.safetensors")).unwrap(),
+        std::fs::read(a.join("model3/m.safetensors")).unwrap(),
+        "--lr-decay changed nothing"
+    );
+    assert_eq!(side.lr_decay, 0.5);
     assert!(side.test_mse.is_finite() && side.feature_mean.len() == 352);
     let weights = a.join("model/m.safetensors");
     for ext in ["json", "loss.csv", "loss.png"] {
