@@ -38,7 +38,10 @@ done
 all=""
 for c in $clouds; do [ "$c" = scene-a ] || all="$all $data/p2p-multi/$c"; done
 for c in $clouds; do all="$all $data/p2p-multi2/a/$c"; done
-for c in $clouds; do [ -d "$data/p2p-multi2/b/$c" ] && all="$all $data/p2p-multi2/b/$c"; done
+for c in $clouds; do
+    case " ${SKIP_B:-} " in *" $c "*) continue ;; esac
+    all="$all $data/p2p-multi2/b/$c"
+done
 mkdir -p "$out"
 # The multi models: the MLP of the shipped model's shape, and the thesis's residual network.
 "$nimbus" train p2p $all --arch mlp --hidden 200,200 --epochs 40 --out "$out/multi"       # 53 s on 2 cores

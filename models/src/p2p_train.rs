@@ -354,6 +354,12 @@ pub fn train(
     cancel: &std::sync::atomic::AtomicBool,
     progress: &dyn Fn(usize, f64),
 ) -> Result<P2pSidecar, String> {
+    if !(cfg.lr > 0.0 && cfg.lr_decay > 0.0 && cfg.lr_decay <= 1.0) {
+        return Err(format!(
+            "the learning rate must be positive and its decay in (0, 1]: {} / {}",
+            cfg.lr, cfg.lr_decay
+        ));
+    }
     let mut x = vec![];
     let mut y = vec![];
     let mut group = vec![]; // data point id of each row

@@ -156,6 +156,17 @@ fn deterministic_resumable_and_shardable() {
         "--lr-decay changed nothing"
     );
     assert_eq!(side.lr_decay, 0.5);
+    // The first epoch trains at the full rate: one epoch with decay 0.5 is one at 1.
+    let one = |decay: f64, name: &str| {
+        let cfg1 = models::p2p_train::P2pTrainConfig { epochs: 1, lr_decay: decay, ..cfg.clone() };
+        let o = a.join(format!("{name}/m"));
+        models::p2p_train::train(&[a.clone()], &cfg1, &o, false, &never, &|_, _| {}).unwrap();
+        std::fs::read(a.join(format!("{name}/m.safetensors"))).unwrap()
+    };
+    assert_eq!(one(0.5, "model4"), one(1.0, "model5"), "the first epoch is decayed");
+    let bad = models::p2p_train::P2pTrainConfig { lr_decay: 0.0, ..cfg.clone() };
+    let e = models::p2p_train::train(&[a.clone()], &bad, &a.join("model6/m"), false, &never, &|_, _| {}).unwrap_err();
+    assert!(e.contains("decay"), "{e}");
     assert!(side.test_mse.is_finite() && side.feature_mean.len() == 352);
     let weights = a.join("model/m.safetensors");
     for ext in ["json", "loss.csv", "loss.png"] {
