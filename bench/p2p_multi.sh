@@ -18,13 +18,14 @@ out=${2:?output directory}
 nimbus=${3:-nimbus}
 clouds="scene-a set-01 set-02 set-03 set-04 set-05 set-06 set-07 set-08 set-09 set-10 set-11"
 seed() { case $1 in scene-a) echo $(($2 + 0)) ;; *) echo $(($2 + 10#${1#set-})) ;; esac; }
+skip_b() { case " ${SKIP_B:-} " in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
 common="--resolution 128 --rho 25 --albedo 0.99 --g 0 --k 2 --chunk-size 10"
 for c in $clouds; do
     # a: 600 points x 8 rotations, T to 20 % at 95 % (seeds 200 + N)
     "$nimbus" datagen p2p --cloud "$c" $common --points 600 --rotations 8 --max-rel-error 0.2 \
         --seed "$(seed "$c" 200)" --out "$data/p2p-multi2/a/$c" --quiet
     # b: 600 more points x 4 rotations (seeds 300 + N)
-    case " ${SKIP_B:-} " in *" $c "*) continue ;; esac
+    skip_b "$c" && continue
     "$nimbus" datagen p2p --cloud "$c" $common --points 600 --rotations 4 --max-rel-error 0.2 \
         --seed "$(seed "$c" 300)" --out "$data/p2p-multi2/b/$c" --quiet
 done
@@ -38,10 +39,7 @@ done
 all=""
 for c in $clouds; do [ "$c" = scene-a ] || all="$all $data/p2p-multi/$c"; done
 for c in $clouds; do all="$all $data/p2p-multi2/a/$c"; done
-for c in $clouds; do
-    case " ${SKIP_B:-} " in *" $c "*) continue ;; esac
-    all="$all $data/p2p-multi2/b/$c"
-done
+for c in $clouds; do skip_b "$c" || all="$all $data/p2p-multi2/b/$c"; done
 mkdir -p "$out"
 # The multi models: the MLP of the shipped model's shape, and the thesis's residual network.
 "$nimbus" train p2p $all --arch mlp --hidden 200,200 --epochs 40 --out "$out/multi"       # 53 s on 2 cores

@@ -69,13 +69,6 @@ fn train_p2p(args: TrainP2pArgs) -> Result<()> {
             "--arch {other:?} with these sizes is not valid: residual (--width, --layers > 0) or mlp (--hidden > 0)"
         ),
     };
-    if args.epochs == 0 || args.batch == 0 || !(args.lr > 0.0) {
-        bail!("--epochs, --batch and --lr must be positive");
-    }
-    if !(args.lr_decay > 0.0 && args.lr_decay <= 1.0) {
-        bail!("--lr-decay must be in (0, 1], not {}", args.lr_decay);
-    }
-    init_threads(args.threads)?;
     let cfg = models::p2p_train::P2pTrainConfig {
         arch,
         epochs: args.epochs,
@@ -85,6 +78,8 @@ fn train_p2p(args: TrainP2pArgs) -> Result<()> {
         seed: args.seed,
         ..Default::default()
     };
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    init_threads(args.threads)?;
     let t = std::time::Instant::now();
     let bar = progress_bar(args.epochs as u64, "epochs", false);
     let cancel = Arc::new(AtomicBool::new(false));

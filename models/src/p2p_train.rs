@@ -102,6 +102,30 @@ impl Default for P2pTrainConfig {
     }
 }
 
+impl P2pTrainConfig {
+    /// Checks the settings, naming the `nimbus train p2p` flag of a bad one (as
+    /// [`crate::train::TrainConfig::validate`] does for the global model).
+    pub fn validate(&self) -> Result<(), String> {
+        let bad = |flag: &str, why: &str| Err(format!("{flag} {why}"));
+        if self.epochs == 0 {
+            return bad("--epochs", "must be at least 1");
+        }
+        if self.batch == 0 {
+            return bad("--batch", "must be at least 1");
+        }
+        if !(self.lr > 0.0 && self.lr.is_finite()) {
+            return bad("--lr", "must be positive");
+        }
+        if !(self.lr_decay > 0.0 && self.lr_decay <= 1.0) {
+            return bad("--lr-decay", "must lie in (0, 1]");
+        }
+        if !(self.test_fraction > 0.0 && self.test_fraction < 1.0) {
+            return bad("the test fraction", "must lie in (0, 1)");
+        }
+        Ok(())
+    }
+}
+
 fn constant_lr() -> f64 {
     1.0
 }
@@ -354,12 +378,7 @@ pub fn train(
     cancel: &std::sync::atomic::AtomicBool,
     progress: &dyn Fn(usize, f64),
 ) -> Result<P2pSidecar, String> {
-    if !(cfg.lr > 0.0 && cfg.lr_decay > 0.0 && cfg.lr_decay <= 1.0) {
-        return Err(format!(
-            "the learning rate must be positive and its decay in (0, 1]: {} / {}",
-            cfg.lr, cfg.lr_decay
-        ));
-    }
+    cfg.validate()?;
     let mut x = vec![];
     let mut y = vec![];
     let mut group = vec![]; // data point id of each row

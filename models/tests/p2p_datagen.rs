@@ -167,6 +167,14 @@ fn deterministic_resumable_and_shardable() {
     let bad = models::p2p_train::P2pTrainConfig { lr_decay: 0.0, ..cfg.clone() };
     let e = models::p2p_train::train(&[a.clone()], &bad, &a.join("model6/m"), false, &never, &|_, _| {}).unwrap_err();
     assert!(e.contains("decay"), "{e}");
+    for (bad, flag) in [
+        (models::p2p_train::P2pTrainConfig { epochs: 0, ..cfg.clone() }, "--epochs"),
+        (models::p2p_train::P2pTrainConfig { lr: f64::NAN, ..cfg.clone() }, "--lr"),
+        (models::p2p_train::P2pTrainConfig { lr_decay: 1.5, ..cfg.clone() }, "--lr-decay"),
+    ] {
+        let e = bad.validate().unwrap_err();
+        assert!(e.starts_with(flag), "{e}");
+    }
     assert!(side.test_mse.is_finite() && side.feature_mean.len() == 352);
     let weights = a.join("model/m.safetensors");
     for ext in ["json", "loss.csv", "loss.png"] {
