@@ -103,26 +103,11 @@ impl Default for P2pTrainConfig {
 }
 
 impl P2pTrainConfig {
-    /// Checks the settings, naming the `nimbus train p2p` flag of a bad one (as
-    /// [`crate::train::TrainConfig::validate`] does for the global model).
+    /// Checks the settings, naming the `nimbus train p2p` flag of a bad one (the
+    /// schedule checks are the global trainer's, [`crate::train::check_schedule`]).
     pub fn validate(&self) -> Result<(), String> {
-        let bad = |flag: &str, why: &str| Err(format!("{flag} {why}"));
-        if self.epochs == 0 {
-            return bad("--epochs", "must be at least 1");
-        }
-        if self.batch == 0 {
-            return bad("--batch", "must be at least 1");
-        }
-        if !(self.lr > 0.0 && self.lr.is_finite()) {
-            return bad("--lr", "must be positive");
-        }
-        if !(self.lr_decay > 0.0 && self.lr_decay <= 1.0) {
-            return bad("--lr-decay", "must lie in (0, 1]");
-        }
-        if !(self.test_fraction > 0.0 && self.test_fraction < 1.0) {
-            return bad("the test fraction", "must lie in (0, 1)");
-        }
-        Ok(())
+        crate::train::check_schedule(self.epochs, self.batch, self.lr, self.lr_decay, self.test_fraction)
+            .map_err(|(flag, why)| format!("{flag} {why}"))
     }
 }
 

@@ -80,26 +80,41 @@ impl From<std::io::Error> for TrainError {
     }
 }
 
+/// The schedule settings both trainers share (epochs, batch, learning rate and its
+/// decay per epoch, test fraction): the flag of the first bad one and why.
+pub fn check_schedule(
+    epochs: usize,
+    batch: usize,
+    lr: f64,
+    lr_decay: f64,
+    test_fraction: f64,
+) -> Result<(), (&'static str, &'static str)> {
+    if epochs == 0 {
+        return Err(("--epochs", "must be at least 1"));
+    }
+    if batch == 0 {
+        return Err(("--batch", "must be at least 1"));
+    }
+    if !(lr > 0.0 && lr.is_finite()) {
+        return Err(("--lr", "must be positive"));
+    }
+    if !(lr_decay > 0.0 && lr_decay <= 1.0) {
+        return Err(("--lr-decay", "must lie in (0, 1]"));
+    }
+    if !(test_fraction > 0.0 && test_fraction < 1.0) {
+        return Err(("--test-fraction", "must lie in (0, 1)"));
+    }
+    Ok(())
+}
+
 impl TrainConfig {
     pub fn validate(&self) -> Result<(), TrainError> {
         let bad = |flag, why: &str| Err(TrainError::Setting { flag, why: why.into() });
         if self.hidden.is_empty() || self.hidden.contains(&0) {
             return bad("--hidden", "needs at least one layer, each at least 1 wide");
         }
-        if self.epochs == 0 {
-            return bad("--epochs", "must be at least 1");
-        }
-        if self.batch == 0 {
-            return bad("--batch", "must be at least 1");
-        }
-        if !(self.lr > 0.0 && self.lr.is_finite()) {
-            return bad("--lr", "must be positive");
-        }
-        if !(self.lr_decay > 0.0 && self.lr_decay <= 1.0) {
-            return bad("--lr-decay", "must lie in (0, 1]");
-        }
-        if !(self.test_fraction > 0.0 && self.test_fraction < 1.0) {
-            return bad("--test-fraction", "must lie in (0, 1)");
+        if let Err((flag, why)) = check_schedule(self.epochs, self.batch, self.lr, self.lr_decay, self.test_fraction) {
+            return bad(flag, why);
         }
         if let Optimizer::Sgd { momentum } = self.optimizer {
             if !(0.0..1.0).contains(&momentum) {
