@@ -1,5 +1,5 @@
 #!/bin/bash
-# The point-to-point evaluation's multi models (README, "The point-to-point model"):
+# The point-to-point evaluation's multi models (docs/point-to-point.md, "Multi models"):
 # ground truth on twelve clouds, scene-a (the evaluated cloud, as thesis 6.5's multi
 # model saw its evaluation cloud) and set-01 .. set-11, then the two networks, and the
 # MLP once more without scene-a to measure generalization to an unseen cloud.
@@ -7,11 +7,9 @@
 #   bench/p2p_multi.sh DATA OUT [NIMBUS]
 #
 # Every data set is seeded and resumable: rerun the script after a stop and it goes
-# on where it stopped (same seed, same data, whatever the thread count). Session 20
-# made sets a and b on the 16-core machine lent to that task (294 s and about 220 s;
-# about 8x that on 2 cores); set b there lacks set-05, which the machine's time ran
-# out on: pass SKIP_B=set-05 to rebuild exactly that model. The 100-point sets (seeds
-# 101 .. 111, 10 % at 95 %, 20 rotations) are session 14's.
+# on where it stopped (same seed, same data, whatever the thread count). Sets a and
+# b take about 294 s and 220 s on 16 cores, about 8x that on 2. The documented models
+# were trained without set-05's set b: pass SKIP_B=set-05 to rebuild exactly them.
 set -euo pipefail
 data=${1:?data directory}
 out=${2:?output directory}
@@ -31,11 +29,11 @@ for c in $clouds; do
 done
 for c in $clouds; do
     [ "$c" = scene-a ] && continue
-    # session 14's 100 points x 20 rotations, T to 10 % at 95 % (seeds 100 + N)
+    # c: 100 points x 20 rotations, T to 10 % at 95 % (seeds 100 + N)
     "$nimbus" datagen p2p --cloud "$c" $common --points 100 --rotations 20 --max-rel-error 0.1 \
         --seed "$(seed "$c" 100)" --out "$data/p2p-multi/$c" --quiet
 done
-# The order of the sets decides the train/test split: session 14's sets, then a, then b.
+# The order of the sets decides the train/test split: the 100-point sets, then a, then b.
 all=""
 for c in $clouds; do [ "$c" = scene-a ] || all="$all $data/p2p-multi/$c"; done
 for c in $clouds; do all="$all $data/p2p-multi2/a/$c"; done

@@ -1,6 +1,6 @@
 //! Built-in analytic clouds, so scenes and tests work before (and without) the
 //! procedural modeler: a multi-lobe cumulus and a homogeneous sphere, both inside the
-//! default cloud box [-0.5, 0.5]^3 (CONVENTIONS.md).
+//! default cloud box [-0.5, 0.5]^3 (docs/conventions.md).
 
 use engine::{Bounds3, DensityGrid};
 use glam::{UVec3, Vec3};

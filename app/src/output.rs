@@ -7,14 +7,15 @@ use engine::{Buffer, DensityGrid, Film};
 use std::path::Path;
 
 /// Runs `write` on a temporary file, then renames it to `path`
-/// ([`models::npy::write_atomically`]), naming the file in the error.
+/// ([`models::dataset::npy::write_atomically`]), naming the file in the error.
 pub fn write_atomically(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-    models::npy::write_atomically(path, write).with_context(|| format!("cannot write {}", path.display()))
+    models::dataset::npy::write_atomically(path, write).with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// Writes bytes atomically.
 pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    models::npy::write_bytes_atomically(path, bytes).with_context(|| format!("cannot write {}", path.display()))
+    models::dataset::npy::write_bytes_atomically(path, bytes)
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// One named RGB layer of an EXR file.
@@ -151,7 +152,7 @@ pub fn write_png(
     write_atomically(path, |tmp| img.save_with_format(tmp, image::ImageFormat::Png).map_err(Into::into))
 }
 
-pub use models::npy::npy_bytes_f32;
+pub use models::dataset::npy::npy_bytes_f32;
 
 /// Writes an (height, width, 3) float32 image as .npy.
 pub fn write_npy_image(path: &Path, width: u32, height: u32, rgb: &[[f32; 3]]) -> Result<()> {

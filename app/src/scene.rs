@@ -27,7 +27,7 @@ use engine::{
 };
 use glam::Vec3;
 use models::global::{BoundGlobalModel, GlobalModel, ModelError};
-use models::p2p_train::{BoundP2pModel, P2pModel};
+use models::p2p::model::{BoundP2pModel, P2pModel};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -240,15 +240,15 @@ pub struct RenderDesc {
 }
 
 fn is_default_extension_samples(n: &u32) -> bool {
-    *n == engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES
+    *n == engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES
 }
 
 fn is_default_r(r: &f32) -> bool {
-    *r == engine::bdpt::Prediction::DEFAULT_R
+    *r == engine::integrator::bdpt::Prediction::DEFAULT_R
 }
 
 fn is_default_candidates(m: &u32) -> bool {
-    *m == engine::bdpt::Prediction::DEFAULT_CANDIDATES
+    *m == engine::integrator::bdpt::Prediction::DEFAULT_CANDIDATES
 }
 
 fn is_path(s: &str) -> bool {
@@ -263,14 +263,14 @@ impl Default for RenderDesc {
             model: None,
             integrator: "path".into(),
             p2p_model: None,
-            r: engine::bdpt::Prediction::DEFAULT_R,
-            candidates: engine::bdpt::Prediction::DEFAULT_CANDIDATES,
-            extension_samples: engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
+            r: engine::integrator::bdpt::Prediction::DEFAULT_R,
+            candidates: engine::integrator::bdpt::Prediction::DEFAULT_CANDIDATES,
+            extension_samples: engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
         }
     }
 }
 
-/// The lighting configurations of the evaluation (thesis 5.5; CONVENTIONS.md).
+/// The lighting configurations of the evaluation (thesis 5.5; docs/conventions.md).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CameraPreset {
     /// Viewing direction perpendicular to the light.
@@ -441,12 +441,12 @@ impl SceneFile {
         if !(self.render.r >= 0.0) {
             return Err(range_err("render.r", self.render.r, "[0, infinity]"));
         }
-        const _: () = assert!(engine::bdpt::Prediction::MAX_CANDIDATES == 4096, "the message below");
-        if !(1..=engine::bdpt::Prediction::MAX_CANDIDATES).contains(&self.render.candidates) {
+        const _: () = assert!(engine::integrator::bdpt::Prediction::MAX_CANDIDATES == 4096, "the message below");
+        if !(1..=engine::integrator::bdpt::Prediction::MAX_CANDIDATES).contains(&self.render.candidates) {
             return Err(range_err("render.candidates", self.render.candidates, "1 ..= 4096"));
         }
-        const _: () = assert!(engine::bdpt::Prediction::MAX_EXTENSION_SAMPLES == 256, "the message below");
-        if !(1..=engine::bdpt::Prediction::MAX_EXTENSION_SAMPLES).contains(&self.render.extension_samples) {
+        const _: () = assert!(engine::integrator::bdpt::Prediction::MAX_EXTENSION_SAMPLES == 256, "the message below");
+        if !(1..=engine::integrator::bdpt::Prediction::MAX_EXTENSION_SAMPLES).contains(&self.render.extension_samples) {
             return Err(range_err("render.extension_samples", self.render.extension_samples, "1 ..= 256"));
         }
         Ok(())
@@ -746,7 +746,7 @@ mod tests {
         let pr = setup.integrator.transport_prediction().expect("BDPT prediction");
         assert_eq!(
             (pr.segments, pr.first_predicted_order(), pr.candidates),
-            (2, 5, engine::bdpt::Prediction::DEFAULT_CANDIDATES)
+            (2, 5, engine::integrator::bdpt::Prediction::DEFAULT_CANDIDATES)
         );
         assert!(pr.predictor.name().contains("point-to-point"), "{}", pr.predictor.name());
         let mut many = s.clone();

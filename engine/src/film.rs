@@ -1,8 +1,8 @@
 //! Accumulation buffers: per pixel sums and sums of squares for each buffer of
-//! CONVENTIONS.md, so means, per-pixel variances and TTUV come from one place.
+//! docs/conventions.md, so means, per-pixel variances and TTUV come from one place.
 //! Sums are f64: 10^5 samples per pixel lose nothing.
 
-use crate::integrator::PathSample;
+use crate::integrator::base::PathSample;
 
 /// The buffers a render accumulates.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -137,7 +137,7 @@ impl Film {
     }
 
     /// Per-pixel, per-channel variance of the pixel ESTIMATE (the sample variance
-    /// divided by spp): the "variance" of CONVENTIONS.md's TTUV.
+    /// divided by spp): the "variance" of docs/conventions.md's TTUV.
     pub fn variance_of_mean(&self, buffer: Buffer) -> Vec<[f32; 3]> {
         let n = self.spp as f64;
         let layer = &self.layers[buffer.index()];

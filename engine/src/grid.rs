@@ -9,7 +9,7 @@
 //! interpolated density tapers linearly to zero over the half voxel on either side of
 //! the bounds' faces. This keeps density continuous and preserves mass: a ray along
 //! an axis through n voxels of value 1 sees an optical depth of exactly n voxel
-//! lengths times rho. Departure from CONVENTIONS.md's "zero outside its bounds": the
+//! lengths times rho. Departure from docs/conventions.md's "zero outside its bounds": the
 //! support is the bounds grown by half a voxel (`support_bounds`), as in OpenVDB and
 //! pbrt-v4's `SampledGrid`, instead of a jump to zero at the bounds.
 

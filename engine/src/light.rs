@@ -14,7 +14,7 @@ pub enum LightError {
 }
 
 /// Directional light. `direction` is the direction the light TRAVELS (omega_L,
-/// CONVENTIONS.md), so light arrives from `-direction`. `radiance` is the thesis's
+/// docs/conventions.md), so light arrives from `-direction`. `radiance` is the thesis's
 /// L_L: the irradiance it delivers to a surface perpendicular to it (1 by default).
 /// With a non-zero angular radius the same irradiance is spread uniformly over a disk
 /// of that half-angle, so softening the sun does not change its brightness.

@@ -2,7 +2,7 @@
 //!
 //! # Direction convention
 //! `p(wo, wi)` takes both directions pointing AWAY from the scattering point
-//! (CONVENTIONS.md, thesis 2.1.4), and `cos_theta = dot(wo, wi)`. In a path tracer
+//! (docs/conventions.md, thesis 2.1.4), and `cos_theta = dot(wo, wi)`. In a path tracer
 //! `wo = -ray.direction` (back toward the camera) and `wi` is the direction the path
 //! continues in. Light that keeps going straight has `wi = -wo`, so
 //! `cos_theta = -1` is FORWARD scattering. Henyey-Greenstein is implemented exactly

@@ -1,10 +1,15 @@
-//! The hook through which a learned model plugs into the renderer at bounce k.
+//! The hooks through which a learned model plugs into the renderer, and the queries
+//! they answer.
 //!
 //! The engine knows nothing of the model's framework: anything that can estimate the
-//! in-scattered radiance at a point implements [`InScatterPredictor`].
+//! in-scattered radiance at a point implements [`InScatterPredictor`] (the path
+//! tracer's prediction at bounce k), anything that can estimate the transport between
+//! two points implements [`TransportPredictor`] (BDPT's prediction between its
+//! subpaths).
 
 use crate::light::Sun;
 use crate::medium::Medium;
+use crate::rng::Rng;
 use glam::Vec3;
 
 /// Predicts the total in-scattered radiance L_i(x -> omega) (thesis eq. 2.7 and the
@@ -33,7 +38,7 @@ pub trait InScatterPredictor: Send + Sync {
 }
 
 /// Predicts the point-to-point transport T(x_e, w_e <-> x_s, w_s) of thesis eq. 6.1
-/// (see [`crate::p2p`]) between two points inside `medium`, for BDPT's prediction
+/// (see [`crate::integrator::p2p`]) between two points inside `medium`, for BDPT's prediction
 /// mode (thesis 6.4): every path between the two points, the single segment joining
 /// them included, with the phase function as the directional profile at both ends
 /// and no scattering coefficient at the ends. World units (T scales as 1 / length^2).
@@ -43,19 +48,13 @@ pub trait InScatterPredictor: Send + Sync {
 /// input (a network's random rotation about the emitter-sensor axis). Called from
 /// many render threads at once: no allocation per call.
 pub trait TransportPredictor: Send + Sync {
-    fn predict(&self, medium: &Medium, q: &crate::p2p::P2pQuery, rng: &mut crate::rng::Rng) -> f32;
+    fn predict(&self, medium: &Medium, q: &P2pQuery, rng: &mut Rng) -> f32;
 
     /// `out[i] = predict(medium, &queries[i], &mut rngs[i])` for every i. The renderer
     /// collects a tile's queries and asks for them at once, so that a network can
     /// apply each weight to several rows while it is loaded. The default answers
     /// them one at a time; an override must give the same answers (up to rounding).
-    fn predict_batch(
-        &self,
-        medium: &Medium,
-        queries: &[crate::p2p::P2pQuery],
-        rngs: &mut [crate::rng::Rng],
-        out: &mut [f32],
-    ) {
+    fn predict_batch(&self, medium: &Medium, queries: &[P2pQuery], rngs: &mut [Rng], out: &mut [f32]) {
         assert!(queries.len() == rngs.len() && queries.len() == out.len(), "one stream and one output per query");
         for ((q, rng), o) in queries.iter().zip(rngs.iter_mut()).zip(out.iter_mut()) {
             *o = self.predict(medium, q, rng);
@@ -65,5 +64,23 @@ pub trait TransportPredictor: Send + Sync {
     /// A short name for logs and reports.
     fn name(&self) -> &str {
         "transport predictor"
+    }
+}
+
+/// One point-to-point query.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct P2pQuery {
+    pub emitter: Vec3,
+    /// Unit direction at the emitter toward where its light came from.
+    pub omega_e: Vec3,
+    pub sensor: Vec3,
+    /// Unit direction at the sensor toward where its path came from.
+    pub omega_s: Vec3,
+}
+
+impl P2pQuery {
+    /// The same query with emitter and sensor exchanged (T is symmetric).
+    pub fn swapped(&self) -> Self {
+        P2pQuery { emitter: self.sensor, omega_e: self.omega_s, sensor: self.emitter, omega_s: self.omega_e }
     }
 }

@@ -8,8 +8,10 @@
 //! finished pass is added, so other threads can take a snapshot at any time.
 
 use crate::film::Film;
-use crate::integrator::{Integrator, IntegratorError, PathSample, Scene};
+use crate::integrator::base::PathSample;
+use crate::integrator::{Integrator, IntegratorError};
 use crate::rng::Rng;
+use crate::scene::Scene;
 use glam::Vec2;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};

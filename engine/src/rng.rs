@@ -3,7 +3,7 @@
 //! Every stream is a PCG32 generator whose state and stream selector are derived from
 //! (scene seed, pass index, pixel or sample index) by a 64-bit mixing function, so a
 //! single path can be replayed alone and an image does not depend on the thread count
-//! (CONVENTIONS.md, Reproducibility).
+//! (docs/conventions.md, Reproducibility).
 
 /// SplitMix64 finalizer: a bijective 64-bit mixer with good avalanche.
 #[inline]

@@ -1,13 +1,13 @@
-//! The VDB importer against files written by OpenVDB itself (../shared/vdb-samples,
-//! each with a JSON of its true contents computed by OpenVDB), the round trip through
-//! our writer, and bad input.
+//! The VDB importer against files written by OpenVDB itself (tests/data/vdb, made by
+//! its make_fixtures.py, each with a JSON of its true contents computed by OpenVDB),
+//! the round trip through our writer, and bad input.
 
 use modeler::vdb::{VdbReadError, read_vdb, read_vdb_bytes, vdb_bytes};
 use serde_json::Value;
 use std::path::PathBuf;
 
 fn samples_dir() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/vdb-samples")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/vdb")
 }
 
 fn truth(name: &str) -> Value {

@@ -1,66 +1,18 @@
-//! The thesis's learned transport models: the global model's features (thesis section
-//! 5.1), ground truth and data generation (5.3), training and inference (5.2).
+//! The learned transport models of the thesis, their data, training and inference.
+//!
+//! - [`global`]: the global model (thesis chapter 5): features, ground truth, data
+//!   generation, training and the renderer's evaluator at bounce k;
+//! - [`p2p`]: the point-to-point model (thesis chapter 6): density pyramid, features,
+//!   networks, data generation, training and the predictor for BDPT;
+//! - [`nn`]: what both networks share: dense layers with AVX2 kernels, the MLP, the
+//!   optimizers and the fast ln(1 + x);
+//! - [`dataset`]: what both data generators share: `.npy` files, manifests, chunks,
+//!   shards, resume and merge;
+//! - [`plot`] (loss curves as PNG) and [`fingerprint`] (model files' identity).
 
-pub mod datagen;
-pub mod density_features;
-pub mod depth_field;
-pub mod directions;
-pub mod fastmath;
-pub mod features;
+pub mod dataset;
+pub mod fingerprint;
 pub mod global;
-pub mod ground_truth;
-pub mod npy;
-pub mod p2p_datagen;
-pub mod p2p_net;
-pub mod p2p_train;
+pub mod nn;
+pub mod p2p;
 pub mod plot;
-pub mod train;
-
-/// A stable 64-bit fingerprint (FNV-1a) of byte strings, each followed by its length
-/// so that the split between them counts: what an evaluation's render cache keys a
-/// model by, so a retrained model never reuses another's renders.
-pub fn fingerprint(parts: &[&[u8]]) -> u64 {
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
-    let mut eat = |b: u8| {
-        h ^= b as u64;
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    };
-    for p in parts {
-        p.iter().copied().for_each(&mut eat);
-        (p.len() as u64).to_le_bytes().into_iter().for_each(&mut eat);
-    }
-    h
-}
-
-/// [`fingerprint`] of a model's weights file and its sidecar (same name, .json).
-pub fn model_file_fingerprint(weights: &std::path::Path) -> std::io::Result<u64> {
-    let read = |p: &std::path::Path| {
-        std::fs::read(p).map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", p.display())))
-    };
-    Ok(fingerprint(&[&read(weights)?, &read(&weights.with_extension("json"))?]))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Same bytes, same fingerprint; one changed byte or a moved split, another; a
-    /// model file and its sidecar are both read.
-    #[test]
-    fn fingerprints_follow_the_bytes() {
-        assert_eq!(fingerprint(&[b"abc", b"def"]), fingerprint(&[b"abc", b"def"]));
-        assert_ne!(fingerprint(&[b"abc", b"def"]), fingerprint(&[b"abc", b"deg"]));
-        assert_ne!(fingerprint(&[b"abc", b"def"]), fingerprint(&[b"abcd", b"ef"]));
-        let dir = std::env::temp_dir().join(format!("nimbus-fingerprint-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let w = dir.join("m.safetensors");
-        std::fs::write(&w, b"weights").unwrap();
-        assert!(model_file_fingerprint(&w).unwrap_err().to_string().contains("m.json"));
-        std::fs::write(dir.join("m.json"), b"{}").unwrap();
-        let a = model_file_fingerprint(&w).unwrap();
-        std::fs::write(dir.join("m.json"), b"{ }").unwrap();
-        assert_ne!(a, model_file_fingerprint(&w).unwrap());
-        assert_eq!(a, fingerprint(&[b"weights", b"{}"]));
-        let _ = std::fs::remove_dir_all(&dir);
-    }
-}

@@ -3,8 +3,6 @@
 //! epoch, like the thesis's figure 5.6) and the evaluation's bias and speedup against
 //! k (figure 5.8).
 
-use crate::train::EpochRecord;
-
 const W: u32 = 640;
 const H: u32 = 400;
 const LEFT: i32 = 70;
@@ -214,17 +212,13 @@ pub fn line_plot_png(title: &str, x_label: &str, y_label: &str, series: &[Series
     cv.png()
 }
 
-/// PNG bytes of the loss curves (log10 MSE against epoch), like the thesis's figure 5.6.
-pub fn loss_plot_png(history: &[EpochRecord]) -> Vec<u8> {
-    let curve = |label: &str, colour, pick: fn(&EpochRecord) -> f64| Series {
+/// PNG bytes of a training run's loss curves, train and test MSE against epoch (like
+/// the thesis's figure 5.6), from (epoch, train, test) per epoch.
+pub fn loss_plot_png(title: &str, y_label: &str, [train, test]: [[u8; 3]; 2], history: &[(f64, f64, f64)]) -> Vec<u8> {
+    let curve = |label: &str, colour, pick: fn(&(f64, f64, f64)) -> f64| Series {
         label: label.into(),
         colour,
-        points: history.iter().map(|h| (h.epoch as f64, pick(h))).collect(),
+        points: history.iter().map(|h| (h.0, pick(h))).collect(),
     };
-    line_plot_png(
-        "",
-        "epoch",
-        "MSE",
-        &[curve("train", TRAIN_COLOUR, |h| h.train_mse), curve("test", TEST_COLOUR, |h| h.test_mse)],
-    )
+    line_plot_png(title, "epoch", y_label, &[curve("train", train, |h| h.1), curve("test", test, |h| h.2)])
 }

@@ -64,9 +64,9 @@ fn depth_field_features_and_predictions_match_ray_marching() {
 /// the same streams, including a degenerate pair (emitter = sensor: zero).
 #[test]
 fn batched_point_to_point_predictions_match_single_ones() {
+    use engine::P2pQuery;
     use engine::TransportPredictor;
-    use engine::p2p::P2pQuery;
-    use models::p2p_train::{BoundP2pModel, P2pModel};
+    use models::p2p::model::{BoundP2pModel, P2pModel};
     let medium = Medium::new(Arc::new(blob(48)), 25.0, 0.99, PhaseFunction::Isotropic).unwrap();
     let bound = BoundP2pModel::new(P2pModel::shipped().unwrap(), &medium);
     let mut rng = Rng::new(23, 0, 0);

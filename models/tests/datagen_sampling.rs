@@ -6,7 +6,7 @@
 //! along it).
 
 use engine::stats::{chi2_test, sidak};
-use models::datagen::{GlobalSpec, ShapeKind, sample_setup};
+use models::global::datagen::{GlobalSpec, ShapeKind, sample_setup};
 
 #[test]
 fn first_collision_queries_are_truncated_free_flights() {

@@ -4,7 +4,8 @@
 
 use engine::{Bounds3, DensityGrid, Rng};
 use glam::{UVec3, Vec3};
-use models::density_features::{DensityPyramid, LocalFrame, P2pFeatures, diffusion_fluence};
+use models::p2p::features::diffusion_fluence;
+use models::p2p::{DensityPyramid, LocalFrame, P2pFeatures};
 
 fn blobs(n: u32) -> DensityGrid {
     let b = Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5));
@@ -75,7 +76,7 @@ fn homogeneous_medium_gives_constant_features() {
     let grid = DensityGrid::from_fn(UVec3::splat(48), b, |_| 0.5).unwrap();
     let spec = P2pFeatures::default();
     let (rho, albedo, dist) = (40.0f32, 0.99f32, 0.1f32);
-    let pyr = models::density_features::pyramid_for(&grid, &spec, dist);
+    let pyr = models::p2p::features::pyramid_for(&grid, &spec, dist);
     let mut out = vec![0.0; spec.len()];
     let mut rng = Rng::new(4, 0, 0);
     for _ in 0..5 {

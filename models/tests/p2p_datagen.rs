@@ -5,8 +5,8 @@
 
 use engine::{Bounds3, DensityGrid};
 use glam::{UVec3, Vec3};
-use models::datagen::Shard;
-use models::p2p_datagen::{P2pSpec, generate, merge};
+use models::dataset::Shard;
+use models::p2p::datagen::{P2pSpec, generate};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -66,9 +66,9 @@ fn deterministic_resumable_and_shardable() {
 
     // Rows: 352 features and 5 targets; T > 0, T_local = D^2 T, the rotations of one
     // point share their targets but not all their features.
-    let (shape, t) = models::npy::read_f32(&a.join("targets.npy")).unwrap();
+    let (shape, t) = models::dataset::npy::read_f32(&a.join("targets.npy")).unwrap();
     assert_eq!(shape, [21, 5]);
-    let (fshape, f) = models::npy::read_f32(&a.join("features.npy")).unwrap();
+    let (fshape, f) = models::dataset::npy::read_f32(&a.join("features.npy")).unwrap();
     assert_eq!(fshape, [21, 352]);
     for r in t.chunks(5) {
         assert!(r[0] > 0.0 && r[1] >= 0.0 && r[2] >= 200.0 && r[3] > 0.0, "{r:?}");
@@ -97,7 +97,7 @@ fn deterministic_resumable_and_shardable() {
         )
     });
     assert!(stopped.is_err(), "the run should have been cancelled");
-    assert!(models::datagen::chunk_path(&c, 0).exists());
+    assert!(models::dataset::chunk_path(&c, 0).exists());
     run(&s, Shard::ALL, &c, 2, &never).unwrap();
     assert_eq!(bytes(&a), bytes(&c), "resumed run differs");
 
@@ -106,7 +106,7 @@ fn deterministic_resumable_and_shardable() {
     run(&s, Shard { index: 0, count: 2 }, &s0, 1, &never).unwrap();
     run(&s, Shard { index: 1, count: 2 }, &s1, 1, &never).unwrap();
     std::fs::create_dir_all(&m).unwrap();
-    merge(&[s0.clone(), s1.clone()], &m).unwrap();
+    models::dataset::merge::<P2pSpec>(&[s0.clone(), s1.clone()], &m).unwrap();
     assert_eq!(bytes(&a), bytes(&m), "merged shards differ");
 
     // Other settings in the same directory are refused, naming the flag.
@@ -115,23 +115,23 @@ fn deterministic_resumable_and_shardable() {
     // The data set trains (a small residual network), the model files load, predict
     // finite positive transport for every row, and broken files are refused by name.
     let out = a.join("model/m");
-    let cfg = models::p2p_train::P2pTrainConfig {
-        arch: models::p2p_net::P2pArch::Residual { width: 16, layers: 2 },
+    let cfg = models::p2p::train::P2pTrainConfig {
+        arch: models::p2p::net::P2pArch::Residual { width: 16, layers: 2 },
         epochs: 3,
         batch: 4,
         lr_decay: 0.5,
         test_fraction: 0.3,
         ..Default::default()
     };
-    let side = models::p2p_train::train(&[a.clone()], &cfg, &out, false, &never, &|_, _| {}).unwrap();
+    let side = models::p2p::train::train(&[a.clone()], &cfg, &out, false, &never, &|_, _| {}).unwrap();
     // Stopped after 1 epoch and resumed: the same weights as the straight run.
     let out2 = a.join("model2/m");
     let stop = AtomicBool::new(false);
     let e =
-        models::p2p_train::train(&[a.clone()], &cfg, &out2, false, &stop, &|_, _| stop.store(true, Ordering::Relaxed))
+        models::p2p::train::train(&[a.clone()], &cfg, &out2, false, &stop, &|_, _| stop.store(true, Ordering::Relaxed))
             .unwrap_err();
     assert!(e.contains("--resume"), "{e}");
-    models::p2p_train::train(&[a.clone()], &cfg, &out2, true, &never, &|_, _| {}).unwrap();
+    models::p2p::train::train(&[a.clone()], &cfg, &out2, true, &never, &|_, _| {}).unwrap();
     assert_eq!(
         std::fs::read(a.join("model/m.safetensors")).unwrap(),
         std::fs::read(a.join("model2/m.safetensors")).unwrap(),
@@ -139,17 +139,17 @@ fn deterministic_resumable_and_shardable() {
     );
     // A checkpoint of other settings is refused, the learning-rate decay included.
     for other in [
-        models::p2p_train::P2pTrainConfig { lr: 0.5, ..cfg.clone() },
-        models::p2p_train::P2pTrainConfig { lr_decay: 1.0, ..cfg.clone() },
+        models::p2p::train::P2pTrainConfig { lr: 0.5, ..cfg.clone() },
+        models::p2p::train::P2pTrainConfig { lr_decay: 1.0, ..cfg.clone() },
     ] {
-        let e = models::p2p_train::train(&[a.clone()], &other, &out2, true, &never, &|_, _| {}).unwrap_err();
+        let e = models::p2p::train::train(&[a.clone()], &other, &out2, true, &never, &|_, _| {}).unwrap_err();
         assert!(e.contains("other settings"), "{e}");
     }
     // The decay is applied (with a constant rate the second and third epochs train
     // other weights) and recorded in the sidecar.
     let out3 = a.join("model3/m");
-    let constant = models::p2p_train::P2pTrainConfig { lr_decay: 1.0, ..cfg.clone() };
-    models::p2p_train::train(&[a.clone()], &constant, &out3, false, &never, &|_, _| {}).unwrap();
+    let constant = models::p2p::train::P2pTrainConfig { lr_decay: 1.0, ..cfg.clone() };
+    models::p2p::train::train(&[a.clone()], &constant, &out3, false, &never, &|_, _| {}).unwrap();
     assert_ne!(
         std::fs::read(a.join("model/m.safetensors")).unwrap(),
         std::fs::read(a.join("model3/m.safetensors")).unwrap(),
@@ -158,19 +158,19 @@ fn deterministic_resumable_and_shardable() {
     assert_eq!(side.lr_decay, 0.5);
     // The first epoch trains at the full rate: one epoch with decay 0.5 is one at 1.
     let one = |decay: f64, name: &str| {
-        let cfg1 = models::p2p_train::P2pTrainConfig { epochs: 1, lr_decay: decay, ..cfg.clone() };
+        let cfg1 = models::p2p::train::P2pTrainConfig { epochs: 1, lr_decay: decay, ..cfg.clone() };
         let o = a.join(format!("{name}/m"));
-        models::p2p_train::train(&[a.clone()], &cfg1, &o, false, &never, &|_, _| {}).unwrap();
+        models::p2p::train::train(&[a.clone()], &cfg1, &o, false, &never, &|_, _| {}).unwrap();
         std::fs::read(a.join(format!("{name}/m.safetensors"))).unwrap()
     };
     assert_eq!(one(0.5, "model4"), one(1.0, "model5"), "the first epoch is decayed");
-    let bad = models::p2p_train::P2pTrainConfig { lr_decay: 0.0, ..cfg.clone() };
-    let e = models::p2p_train::train(&[a.clone()], &bad, &a.join("model6/m"), false, &never, &|_, _| {}).unwrap_err();
+    let bad = models::p2p::train::P2pTrainConfig { lr_decay: 0.0, ..cfg.clone() };
+    let e = models::p2p::train::train(&[a.clone()], &bad, &a.join("model6/m"), false, &never, &|_, _| {}).unwrap_err();
     assert!(e.contains("decay"), "{e}");
     for (bad, flag) in [
-        (models::p2p_train::P2pTrainConfig { epochs: 0, ..cfg.clone() }, "--epochs"),
-        (models::p2p_train::P2pTrainConfig { lr: f64::NAN, ..cfg.clone() }, "--lr"),
-        (models::p2p_train::P2pTrainConfig { lr_decay: 1.5, ..cfg.clone() }, "--lr-decay"),
+        (models::p2p::train::P2pTrainConfig { epochs: 0, ..cfg.clone() }, "--epochs"),
+        (models::p2p::train::P2pTrainConfig { lr: f64::NAN, ..cfg.clone() }, "--lr"),
+        (models::p2p::train::P2pTrainConfig { lr_decay: 1.5, ..cfg.clone() }, "--lr-decay"),
     ] {
         let e = bad.validate().unwrap_err();
         assert!(e.starts_with(flag), "{e}");
@@ -180,7 +180,7 @@ fn deterministic_resumable_and_shardable() {
     for ext in ["json", "loss.csv", "loss.png"] {
         assert!(a.join(format!("model/m.{ext}")).exists(), "{ext}");
     }
-    let model = models::p2p_train::P2pModel::load(&weights).unwrap();
+    let model = models::p2p::model::P2pModel::load(&weights).unwrap();
     let mut input = vec![];
     let mut scratch = Default::default();
     for (row, tr) in f.chunks(352).zip(t.chunks(5)) {
@@ -188,10 +188,10 @@ fn deterministic_resumable_and_shardable() {
         assert!(p.is_finite() && p > 0.0, "{p}");
     }
     std::fs::write(a.join("model/m.json"), "{}").unwrap();
-    let e = models::p2p_train::P2pModel::load(&weights).err().unwrap();
+    let e = models::p2p::model::P2pModel::load(&weights).err().unwrap();
     assert!(e.contains("m.json"), "{e}");
     std::fs::write(&weights, b"junk").unwrap();
-    let e = models::p2p_train::P2pModel::load(&weights).err().unwrap();
+    let e = models::p2p::model::P2pModel::load(&weights).err().unwrap();
     assert!(e.contains("m.json") || e.contains("m.safetensors"), "{e}");
     for d in [a, b, c, s0, s1, m] {
         std::fs::remove_dir_all(d).ok();

@@ -4,8 +4,8 @@
 
 use candle_core::{Device, Tensor};
 use engine::Rng;
-use models::density_features::P2pFeatures;
-use models::p2p_net::{P2pArch, P2pNetwork, P2pScratch};
+use models::p2p::features::P2pFeatures;
+use models::p2p::net::{P2pArch, P2pNetwork, P2pScratch};
 
 fn rows(n: usize, len: usize, rng: &mut Rng) -> Vec<f32> {
     (0..n * len).map(|_| 3.0 * rng.uniform()).collect()

@@ -3,13 +3,15 @@
 use candle_core::{Device, Tensor};
 use engine::InScatterPredictor;
 use engine::Rng;
-use models::datagen::{GlobalSpec, Shard};
-use models::directions::DirectionSetKind;
-use models::global::{
-    Activation, FeatureLayout, GlobalModel, TargetKind, predicted_l_i, single_scattering, single_scattering_phase,
-    transform_target,
+use models::dataset::Shard;
+use models::global::GlobalSpec;
+use models::global::directions::DirectionSetKind;
+use models::global::model::{
+    FeatureLayout, GlobalModel, TargetKind, predicted_l_i, single_scattering, single_scattering_phase, transform_target,
 };
-use models::train::{EpochRecord, Network, Optimizer, Quiet, TrainConfig, TrainData, TrainObserver, train};
+use models::global::train::{EpochRecord, Network, Quiet, TrainConfig, TrainData, TrainObserver, train};
+use models::nn::Activation;
+use models::nn::Optimizer;
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 
@@ -96,7 +98,8 @@ fn a_generated_data_set_trains() {
         seed: 3,
         ..Default::default()
     };
-    models::datagen::generate(&spec, Shard::ALL, &dir.join("data"), "test", &|_| {}, &AtomicBool::new(false)).unwrap();
+    models::global::datagen::generate(&spec, Shard::ALL, &dir.join("data"), "test", &|_| {}, &AtomicBool::new(false))
+        .unwrap();
     let data = TrainData::load(&[dir.join("data")]).unwrap();
     assert_eq!(data.n_features(), 20);
     let cfg =
@@ -106,7 +109,7 @@ fn a_generated_data_set_trains() {
     assert_eq!(model.sidecar.features.n_dirs, 16);
     // A data set of another layout is refused by name.
     let other = GlobalSpec { n_dirs: 4, points: 10, chunk_size: 10, ..spec.clone() };
-    models::datagen::generate(&other, Shard::ALL, &dir.join("data4"), "test", &|_| {}, &AtomicBool::new(false))
+    models::global::datagen::generate(&other, Shard::ALL, &dir.join("data4"), "test", &|_| {}, &AtomicBool::new(false))
         .unwrap();
     let e = TrainData::load(&[dir.join("data"), dir.join("data4")]).err().unwrap().to_string();
     assert!(e.contains("4 tetrahedron directions") && e.contains("16 tetrahedron"), "{e}");

@@ -6,8 +6,8 @@
 //! passes are independent, so the averages' mean and standard error give z-scores.
 //! Bounds are Sidak-corrected two-sided normal quantiles at a family-wise 1 %.
 
-use engine::bdpt::{BdptSettings, MisHeuristic};
 use engine::stats::{Welford, z_bound};
+use engine::{BdptSettings, MisHeuristic};
 use engine::{Integrator, PhaseFunction, RenderSettings, Rng, Scene, Sun, Technique};
 use glam::{Vec2, Vec3};
 use nimbus_tests::cumulus_scene;
@@ -143,19 +143,19 @@ fn each_connection_strategy_converges_to_the_same_answer() {
 /// BDPT's prediction mode must be unbiased, so any error in the plumbing (the caps
 /// and weights of the low orders, the subpaths' throughputs, the one-segment term
 /// taken out of T, the extension below r, the 1/p) shows against the path tracer.
-use engine::p2p::EstimatedTransport as ExactTransport;
+use engine::integrator::p2p::EstimatedTransport as ExactTransport;
 
 /// A predictor 30 % too high: the test must see it.
 struct BiasedTransport;
 
 impl engine::TransportPredictor for BiasedTransport {
-    fn predict(&self, medium: &engine::Medium, q: &engine::p2p::P2pQuery, rng: &mut Rng) -> f32 {
-        1.3 * engine::p2p::sample_transport(medium, q, &Default::default(), rng)
+    fn predict(&self, medium: &engine::Medium, q: &engine::P2pQuery, rng: &mut Rng) -> f32 {
+        1.3 * engine::integrator::p2p::sample_transport(medium, q, &Default::default(), rng)
     }
 }
 
 fn predicting(seed: u64, k: u32, r: f32, p: f32) -> Integrator {
-    predicting_with(seed, k, r, p, 1, engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES)
+    predicting_with(seed, k, r, p, 1, engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES)
 }
 
 /// With `m` light subpath candidates per camera end vertex and `n` point-to-point
@@ -184,7 +184,7 @@ fn predicting_with(seed: u64, k: u32, r: f32, p: f32, m: u32, n: u32) -> Integra
 fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
     let scene = scene(0.0);
     let passes = std::env::var("BDPT_PASSES").ok().and_then(|v| v.parse().ok()).unwrap_or(6000);
-    let n = engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES;
+    let n = engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES;
     assert!(n > 1);
     let runs = [
         (1u32, 0.1f32, 0.5f32, 1u32, None, n),
@@ -205,10 +205,9 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
         // the extension's values are heavy-tailed (at best a finite variance with an
         // infinite third moment; the variance itself may diverge slowly as pairs
         // get closer), so the mean's error is skewed and a z-test at the base count
-        // undercovers. Session 19: the first run (same seed; its extension then
-        // averaging the default 4 samples, so another stream) gave z -3.7 at 6,000 passes and
-        // -1.7 at 24,000, whose first 6,000 are the same samples: the later ones
-        // brought the rare large values. Four times the passes for these runs;
+        // undercovers: a run with another stream gave z -3.7 at 6,000 passes and
+        // -1.7 at 24,000, whose first 6,000 were the same samples (the later ones
+        // brought the rare large values). Four times the passes for these runs;
         // with candidates (m > 1) the close-pair target samples them in proportion
         // to 1 / d, which tames the tail.
         let passes = if m == 1 { 4 * passes } else { passes };
@@ -232,7 +231,7 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
         let mut rng = Rng::new(3, 0, px as u64);
         let (o, d) = cam.generate_ray(px % cam.width(), px / cam.width(), Vec2::splat(0.5));
         for _ in 0..200 {
-            engine::bdpt::trace_strategies(
+            engine::integrator::bdpt::trace_strategies(
                 integ.settings(),
                 &Default::default(),
                 integ.transport_prediction(),
@@ -243,8 +242,8 @@ fn bdpt_prediction_with_an_exact_predictor_is_unbiased() {
                 None,
                 None,
                 &mut |c| match c.strategy {
-                    engine::bdpt::Strategy::Predicted => predicted += 1,
-                    engine::bdpt::Strategy::Extended => extended += 1,
+                    engine::integrator::bdpt::Strategy::Predicted => predicted += 1,
+                    engine::integrator::bdpt::Strategy::Extended => extended += 1,
                     _ => assert!(c.order <= 4, "BDPT made order {} beyond 2k with k = 2", c.order),
                 },
             );

@@ -146,7 +146,7 @@ fn vdb_cloud_round_trip_through_the_cli() {
     assert!(layers.iter().find(|l| l.name == "full").unwrap().rgb.iter().any(|p| p[0] > 0.0));
 
     // A VDB the reader cannot handle is refused with the file and the reason.
-    let half = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/vdb-samples/half_float.vdb");
+    let half = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../modeler/tests/data/vdb/half_float.vdb");
     std::fs::write(&scene, format!("[grid]\nfile = \"{}\"\n", half.display())).unwrap();
     let e = format!("{:#}", nimbus(&["render", s(&scene), "--out", s(&exr), "--quiet"]).unwrap_err());
     assert!(e.contains("half_float.vdb") && e.contains("half floats"), "{e}");

@@ -4,7 +4,7 @@
 //! lower TTUV than path tracing, path tracing reaches a preview and the prediction's
 //! RMSE floor falls with k, and a rerun resumes from the cache.
 
-use app::eval_cmd::{EvalArgs, eval};
+use app::lab::eval::global::{EvalArgs, eval};
 
 #[test]
 fn small_evaluation_runs_end_to_end() {

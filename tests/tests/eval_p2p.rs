@@ -3,7 +3,7 @@
 //! are written, the prediction lands near BDPT's high orders, with light subpath
 //! candidates too, a rerun resumes from the cache, and a missing model is named.
 
-use app::eval_p2p::{EvalP2pArgs, eval_p2p};
+use app::lab::eval::p2p::{EvalP2pArgs, eval_p2p};
 use std::path::PathBuf;
 
 fn shipped() -> PathBuf {
@@ -20,7 +20,7 @@ fn args(out: PathBuf) -> EvalP2pArgs {
         p: 1.0,
         r: 0.08,
         candidates: 1,
-        extension_samples: engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
+        extension_samples: engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
         cloud: "scene-a".into(),
         res: 64,
         model: None,
@@ -75,14 +75,12 @@ fn small_p2p_evaluation_runs_end_to_end() {
         assert!(c.secs_free > 0.0 && c.free_ceiling.is_finite() && c.free_ceiling > 0.0, "{c:?}");
     }
     assert!(resampled[0].ttuv_pred_high != cells[0].ttuv_pred_high);
-    // Renders with candidates are cached under the extension samples too (pooled
-    // renders of earlier sessions, made with another resampling target, have no such
-    // suffix and are not reused).
+    // Prediction renders are cached under their candidates and extension samples.
     let names: Vec<String> = std::fs::read_dir(out.join("cache"))
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .collect();
-    let x = format!("_pool4_x{}_", engine::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES);
+    let x = format!("_pool4_x{}_", engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES);
     assert!(names.iter().any(|n| n.contains("_estimated_") && n.contains(&x)), "{names:?}");
     // The reference is shared: read back from the cache here, so equal to the digit
     // its timing survives JSON (serde_json's default float parser may miss the last

@@ -8,7 +8,7 @@
 use engine::stats::{Welford, z_bound};
 use engine::{Bounds3, Camera, DensityGrid, Integrator, Medium, PhaseFunction, RenderSettings, Rng, Scene, Sky, Sun};
 use glam::{Mat3, UVec3, Vec3};
-use models::ground_truth::{ConvexMedium, Shape, sample_in_scattered};
+use models::global::ground_truth::{ConvexMedium, Shape, sample_in_scattered};
 use std::sync::Arc;
 
 #[test]

@@ -4,8 +4,9 @@
 //! sensor subpath lengths, and emitter and sensor exchanged, which makes different
 //! random walks estimate the same symmetric T).
 
-use engine::bdpt::MisHeuristic;
-use engine::p2p::{ConnectionScheme, P2pQuery, P2pSettings, sample_transport};
+use engine::MisHeuristic;
+use engine::P2pQuery;
+use engine::integrator::p2p::{ConnectionScheme, P2pSettings, sample_transport};
 use engine::stats::{Welford, z_bound};
 use engine::{Medium, PhaseFunction, Rng};
 use glam::{UVec3, Vec3};

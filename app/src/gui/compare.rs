@@ -1,6 +1,6 @@
 //! Reference vs prediction: the textures of the side-by-side and wipe views and the
 //! buffer panel (low orders, predicted high orders, reference high orders, their
-//! error in false colour with its scale, and the relative bias of CONVENTIONS.md as
+//! error in false colour with its scale, and the relative bias of docs/conventions.md as
 //! a number).
 //!
 //! Preparing these images (five tone-mapped buffers and the bias with its variance)
@@ -8,7 +8,7 @@
 //! it the published films (shared, not copied) and only uploads the finished images.
 
 use super::worker::Published;
-use crate::eval_cmd::{Image, bias, false_colour, lit_mean};
+use crate::metrics::{Image, bias, false_colour, lit_mean};
 use crate::output::ToneMap;
 use eframe::egui;
 use engine::{Buffer, Film};
@@ -52,7 +52,7 @@ pub struct CompareView {
     /// The error colour scale: yellow at this radiance.
     error_scale: f32,
     /// Relative bias of the prediction's full image against the reference's, and the
-    /// noise floor of that number (CONVENTIONS.md; 16x box downscale).
+    /// noise floor of that number (docs/conventions.md; 16x box downscale).
     pub bias: Option<(f64, f64)>,
     enlarged: Option<usize>,
     pub layout: Layout,
@@ -170,7 +170,7 @@ impl CompareView {
         match self.bias {
             Some((rel, floor)) => {
                 ui.label(format!("relative bias {:.2} %", 100.0 * rel)).on_hover_text(format!(
-                    "16x box downscale, CONVENTIONS.md; noise alone would show about {:.2} %",
+                    "16x box downscale, docs/conventions.md; noise alone would show about {:.2} %",
                     100.0 * floor
                 ));
             }

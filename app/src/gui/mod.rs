@@ -675,7 +675,7 @@ impl NimbusApp {
                         .on_hover_text(
                             "end vertices closer than r are joined by extending the subpaths, not predicted",
                         );
-                    let max_m = engine::bdpt::Prediction::MAX_CANDIDATES;
+                    let max_m = engine::integrator::bdpt::Prediction::MAX_CANDIDATES;
                     ui.add(
                         egui::Slider::new(&mut self.scene.render.candidates, 1..=max_m)
                             .logarithmic(true)
@@ -686,7 +686,7 @@ impl NimbusApp {
                          thesis's pairing; the others are picked from a pool traced once per pass, so more \
                          lower the noise for little cost",
                     );
-                    let max_n = engine::bdpt::Prediction::MAX_EXTENSION_SAMPLES;
+                    let max_n = engine::integrator::bdpt::Prediction::MAX_EXTENSION_SAMPLES;
                     ui.add(
                         egui::Slider::new(&mut self.scene.render.extension_samples, 1..=max_n)
                             .logarithmic(true)

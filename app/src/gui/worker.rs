@@ -168,7 +168,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             };
             // The full depth field if it is cached (camera, k, p changes), else a coarse
             // one now and the full one after the first pass.
-            let full_nodes = models::depth_field::DEFAULT_MAX_NODES;
+            let full_nodes = models::global::depth_field::DEFAULT_MAX_NODES;
             let mut upgrade = None;
             let built = grid.map_err(|e| e.to_string()).and_then(|g| {
                 let built = Arc::new(scene.build_scene(Some(g)).map_err(|e| e.to_string())?);
@@ -225,7 +225,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             let built = j.main.scene().clone();
             let compare = j.reference.is_some();
             if let Ok((r, reference, _)) =
-                build_job(&scene, built, models::depth_field::DEFAULT_MAX_NODES, compare, &mut predictors)
+                build_job(&scene, built, models::global::depth_field::DEFAULT_MAX_NODES, compare, &mut predictors)
             {
                 if control.generation() == j.generation {
                     (j.main, j.reference, j.start) = (r, reference, Instant::now());

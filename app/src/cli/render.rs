@@ -1,0 +1,213 @@
+//! `nimbus render`: a scene file to a multi-layer EXR (full, direct, low, high,
+//! variance) and optionally a PNG, with the scene's settings overridden by flags;
+//! one JSON line of figures at the end.
+
+use super::common::{init_threads, progress_bar, stop_on_ctrl_c};
+use crate::output::{self, ToneMap};
+use crate::progressive::render_spp;
+use crate::scene::SceneFile;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use engine::{Buffer, RenderControl};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    /// Scene file (TOML).
+    pub scene: PathBuf,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 64)]
+    pub spp: u32,
+    /// Override the scene's k (first order of the high-order buffer).
+    #[arg(long)]
+    pub k: Option<u32>,
+    /// Override the scene's seed.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Override the resolution: WIDTHxHEIGHT.
+    #[arg(long)]
+    pub size: Option<String>,
+    /// Output EXR (layers full, direct, low, high, variance).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also write a tone-mapped PNG of the full image.
+    #[arg(long)]
+    pub png: Option<PathBuf>,
+    /// Exposure in stops for the PNG.
+    #[arg(long, default_value_t = 0.0)]
+    pub exposure: f32,
+    /// Tone curve for the PNG: filmic or clamp.
+    #[arg(long, default_value = "filmic")]
+    pub tonemap: String,
+    /// Worker threads (default: all cores). The image does not depend on it.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+    /// Prediction mode at bounce K: vertices 1 .. K-1 path traced, the learned model
+    /// predicts the rest at vertex K (overrides the scene's render.mode and k). With
+    /// --integrator bdpt: K segments on each subpath, orders 1 .. 2K by BDPT and the
+    /// point-to-point model between the subpaths' ends (buffers split at 2K + 1).
+    #[arg(long, value_name = "K")]
+    pub predict: Option<u32>,
+    /// Full light transport, no prediction (overrides a scene's render.mode = "predict").
+    #[arg(long, conflicts_with = "predict")]
+    pub reference: bool,
+    /// Prediction probability p in (0, 1] (Russian roulette on the prediction).
+    #[arg(long)]
+    pub p: Option<f32>,
+    /// Choose p by minimizing TTUV from 8 pilot passes (see `progressive::auto_p`).
+    #[arg(long)]
+    pub auto_p: bool,
+    /// The global model (.safetensors + .json sidecar); default: the shipped model.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Light transport: path (default) or bdpt (volumetric bidirectional path
+    /// tracing with MIS); overrides the scene's render.integrator.
+    #[arg(long, value_name = "path|bdpt")]
+    pub integrator: Option<String>,
+    /// The point-to-point model for --integrator bdpt --predict K (.safetensors +
+    /// .json); default: the shipped single-cloud model.
+    #[arg(long)]
+    pub p2p_model: Option<PathBuf>,
+    /// Distance threshold r of BDPT prediction (default 0.04; the thesis's 0.08).
+    #[arg(long)]
+    pub r: Option<f32>,
+    /// Light subpaths offered to each camera end vertex in BDPT prediction, one
+    /// chosen by resampling (default 256, picked from the pass's pool; 1 is the thesis's pairing).
+    #[arg(long)]
+    pub candidates: Option<u32>,
+    /// Point-to-point samples for each pair of end vertices closer than r in BDPT
+    /// prediction (default 8).
+    #[arg(long)]
+    pub extension_samples: Option<u32>,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32)> {
+    let (w, h) = s.split_once('x').with_context(|| format!("--size {s}: expected WIDTHxHEIGHT, e.g. 512x512"))?;
+    Ok((w.trim().parse().context("--size width")?, h.trim().parse().context("--size height")?))
+}
+
+/// `nimbus render`: renders a scene file to EXR (and PNG), prints a JSON summary.
+pub fn render(args: RenderArgs) -> Result<()> {
+    let threads = init_threads(args.threads)?;
+    let tone = ToneMap::from_name(&args.tonemap)
+        .with_context(|| format!("--tonemap {}: choose filmic or clamp", args.tonemap))?;
+    if args.spp == 0 {
+        bail!("--spp must be at least 1");
+    }
+    let mut file = SceneFile::load(&args.scene)?;
+    if let Some(k) = args.k {
+        file.k = k;
+    }
+    if let Some(seed) = args.seed {
+        file.seed = seed;
+    }
+    if let Some(size) = &args.size {
+        (file.camera.width, file.camera.height) = parse_size(size)?;
+    }
+    file.validate()?;
+    if let Some(k) = args.predict {
+        file.k = k;
+        file.render.mode = "predict".into();
+    }
+    if args.reference {
+        file.render.mode = "reference".into();
+    }
+    if let Some(p) = args.p {
+        file.render.p = p;
+    }
+    if let Some(i) = &args.integrator {
+        file.render.integrator = i.clone();
+    }
+    if let Some(r) = args.r {
+        file.render.r = r;
+    }
+    if let Some(m) = args.candidates {
+        file.render.candidates = m;
+    }
+    if let Some(n) = args.extension_samples {
+        file.render.extension_samples = n;
+    }
+    if let Some(m) = &args.model {
+        // Relative to where nimbus runs, like every other path on the command line.
+        file.render.model = Some(std::path::absolute(m)?.display().to_string());
+    }
+    if let Some(m) = &args.p2p_model {
+        file.render.p2p_model = Some(std::path::absolute(m)?.display().to_string());
+    }
+    file.validate()?;
+    let scene = Arc::new(file.build_scene(None)?);
+    let setup = file.integrator(&scene, models::global::depth_field::DEFAULT_MAX_NODES)?;
+    if let Some(w) = &setup.warning {
+        eprintln!("warning: {w}");
+    }
+    let mut integrator = setup.integrator;
+    let control = Arc::new(RenderControl::new());
+    stop_on_ctrl_c(&control);
+    if let (true, Some(pred)) = (args.auto_p, integrator.predictor().cloned()) {
+        let a = crate::progressive::auto_p(scene.clone(), *integrator.settings(), pred.clone(), 8, &control)?;
+        eprintln!(
+            "automatic p = {:.3} (V1 {:.3e}, B {:.3e}, c0 {:.3} s, c1 {:.3} s per pass)",
+            a.p, a.v1, a.b, a.c0, a.c1
+        );
+        let settings = engine::RenderSettings { mode: engine::Mode::Predict { p: a.p }, ..*integrator.settings() };
+        integrator = engine::Integrator::new(settings, Some(pred))?;
+    }
+    let mode = match integrator.settings().mode {
+        engine::Mode::Reference if matches!(integrator.technique(), engine::Technique::Bdpt(_)) => {
+            "reference (BDPT)".to_string()
+        }
+        engine::Mode::Reference => "reference".to_string(),
+        engine::Mode::Predict { p } => match integrator.transport_prediction() {
+            Some(pr) => format!(
+                "predict (BDPT, k {} segments, orders {}+ by {}, r {}, p {p})",
+                pr.segments,
+                pr.first_predicted_order(),
+                pr.predictor.name(),
+                pr.r
+            ),
+            None => format!("predict (k {}, p {p})", integrator.settings().k),
+        },
+    };
+    let bar = progress_bar(args.spp as u64, "spp", args.quiet);
+    let outcome = render_spp(scene.clone(), integrator, args.spp, &control, |done| bar.set_position(done as u64))?;
+    bar.finish_and_clear();
+    let film = &outcome.film;
+    if film.spp() == 0 {
+        bail!("stopped before the first pass finished: nothing written");
+    }
+    write_outputs(film, &args.out, args.png.as_deref(), tone, args.exposure)?;
+    if film.rejected_samples() > 0 {
+        eprintln!("warning: {} non-finite samples were dropped", film.rejected_samples());
+    }
+    let summary = serde_json::json!({
+        "spp": film.spp(),
+        "seconds": outcome.render_secs,
+        "samples_per_second": outcome.samples_per_sec(),
+        "width": film.width(),
+        "height": film.height(),
+        "threads": threads,
+        "stopped_early": outcome.stopped,
+        "mean_full": film.average(Buffer::Full),
+        "relative_noise": film.relative_noise(Buffer::Full),
+        // Inverse of (relative variance x seconds): higher is better, comparable
+        // between integrators on the same scene and machine.
+        "efficiency": 1.0 / (film.relative_noise(Buffer::Full).powi(2) * outcome.render_secs).max(1e-300),
+        "mode": mode,
+        "out": args.out,
+    });
+    println!("{summary}");
+    Ok(())
+}
+
+/// EXR with every buffer, and the PNG if asked.
+pub fn write_outputs(film: &engine::Film, exr: &Path, png: Option<&Path>, tone: ToneMap, exposure: f32) -> Result<()> {
+    output::write_exr(exr, film.width(), film.height(), &output::film_layers(film))?;
+    if let Some(png) = png {
+        output::write_png(png, film.width(), film.height(), &film.mean(Buffer::Full), tone, exposure)?;
+    }
+    Ok(())
+}

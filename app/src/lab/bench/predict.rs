@@ -1,0 +1,272 @@
+//! `nimbus bench predict` and `nimbus bench predict-p2p`: the cost of one prediction
+//! of each model on one thread (features, network), beside the cost of a path-traced
+//! scattering event in the same cloud.
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use engine::{InScatterPredictor, Rng};
+use models::global::GlobalModel;
+use models::nn::Activation;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+#[derive(Args, Debug)]
+pub struct BenchPredictArgs {
+    /// Model to time (default: the shipped one; a Glorot-initialized [200, 100] network
+    /// with n_D = 64 if it cannot be loaded).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Predictions per measurement.
+    #[arg(long, default_value_t = 200_000)]
+    pub n: usize,
+    /// Density scale of the 128^3 benchmark cloud (scene-a).
+    #[arg(long, default_value_t = 40.0)]
+    pub rho: f32,
+}
+
+/// The model the renderer loads by default.
+pub fn default_model_path() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../assets/models/global.safetensors")
+}
+
+/// Nanoseconds per prediction (network alone, features + network on a 128^3 cloud)
+/// against the cost of a path-traced scattering event in the same cloud; one thread.
+pub fn bench_predict(args: BenchPredictArgs) -> Result<()> {
+    let path = args.model.clone().unwrap_or_else(default_model_path);
+    let model = match GlobalModel::load(&path) {
+        Ok(m) => m,
+        Err(e) if args.model.is_none() => {
+            eprintln!("note: {e}; timing an untrained [200, 100] network instead");
+            untrained_model()?
+        }
+        Err(e) => return Err(e.into()),
+    };
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    pool.install(|| bench_predict_inner(&model, &args))
+}
+
+fn untrained_model() -> Result<GlobalModel> {
+    let layout = models::global::model::FeatureLayout::current(Default::default(), 64);
+    let net =
+        models::global::train::Network::glorot(&[68, 200, 100, 1], Activation::Relu, 1, &candle_core::Device::Cpu)?;
+    let sidecar = models::global::model::Sidecar {
+        format: models::global::model::MODEL_FORMAT.into(),
+        format_version: models::global::model::MODEL_FORMAT_VERSION,
+        features: layout,
+        standardization: models::global::model::Standardization {
+            feature_mean: vec![0.0; 68],
+            feature_std: vec![1.0; 68],
+            target: models::global::model::TARGET_TRANSFORM.into(),
+            target_mean: 0.0,
+            target_std: 1.0,
+        },
+        hidden: vec![200, 100],
+        activation: Activation::Relu,
+        training: serde_json::Value::Null,
+    };
+    Ok(GlobalModel::new(sidecar, net.to_mlp()?))
+}
+
+fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<()> {
+    let n = args.n.max(1000);
+    let n_f = model.feature_extractor().len();
+    let mut rng = Rng::new(1, 2, 3);
+    let xs: Vec<f32> = (0..1024 * n_f).map(|_| 2.0 * rng.uniform() - 1.0).collect();
+    let mut scratch = model.mlp.scratch();
+    // Network alone.
+    let t = std::time::Instant::now();
+    let mut sink = 0.0f32;
+    for i in 0..n {
+        sink += model.mlp.forward(&xs[(i % 1024) * n_f..(i % 1024 + 1) * n_f], &mut scratch);
+    }
+    let net_ns = t.elapsed().as_secs_f64() * 1e9 / n as f64;
+    // Batched entry point.
+    let mut out = vec![0.0f32; 1024];
+    let t = std::time::Instant::now();
+    for _ in 0..n / 1024 {
+        model.mlp.forward_batch(&xs, &mut out, &mut scratch);
+        sink += out[7];
+    }
+    let batch_ns = t.elapsed().as_secs_f64() * 1e9 / (n / 1024 * 1024) as f64;
+    // Features + network at points inside the cloud, against path-traced scattering
+    // events (free flight by delta tracking + a sun shadow ray by ratio tracking, the
+    // work of one vertex in the integrator).
+    let params = modeler::preset("scene-a").context("scene-a preset")?;
+    let grid = modeler::build_grid(&params, 128)?;
+    let medium = engine::Medium::new(
+        std::sync::Arc::new(grid),
+        args.rho,
+        1.0,
+        engine::PhaseFunction::HenyeyGreenstein { g: 0.85 },
+    )?;
+    let sun = engine::Sun::new(glam::Vec3::new(0.0, -1.0, 0.0), glam::Vec3::ONE, 0.0)?;
+    let mut points = vec![];
+    let b = medium.bounds();
+    while points.len() < 4096 {
+        let p = b.min + (b.max - b.min) * glam::Vec3::new(rng.uniform(), rng.uniform(), rng.uniform());
+        if medium.grid().lookup(p) > 0.05 {
+            points.push((p, engine::sampling::sample_uniform_sphere(rng.uniform2())));
+        }
+    }
+    let m = (n / 20).max(1000);
+    let t = std::time::Instant::now();
+    for i in 0..m {
+        let (p, w) = points[i % points.len()];
+        sink += model.predict(&medium, &sun, p, w);
+    }
+    let full_ns = t.elapsed().as_secs_f64() * 1e9 / m as f64;
+    // The renderer's path: features from the depth field (built once per cloud and sun).
+    let t = std::time::Instant::now();
+    let bound = models::global::BoundGlobalModel::new(
+        Arc::new(model.clone()),
+        &medium,
+        &sun,
+        models::global::depth_field::DEFAULT_MAX_NODES,
+    );
+    let field_secs = t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
+    for i in 0..n / 4 {
+        let (p, w) = points[i % points.len()];
+        sink += bound.predict(&medium, &sun, p, w);
+    }
+    let bound_ns = t.elapsed().as_secs_f64() * 1e9 / (n / 4) as f64;
+    let t = std::time::Instant::now();
+    let phase = medium.phase();
+    for i in 0..m {
+        let (p, w) = points[i % points.len()];
+        let wi = phase.sample(w, rng.uniform2()).wi;
+        let tmax = medium.exit_distance(p, wi);
+        if let engine::medium::FreeFlight::Collision { t } = medium.sample_free_flight(p, wi, tmax, &mut rng) {
+            sink += t;
+        }
+        let to_sun = -sun.direction();
+        sink += medium.transmittance_ratio(p, to_sun, medium.exit_distance(p, to_sun), &mut rng);
+    }
+    let event_ns = t.elapsed().as_secs_f64() * 1e9 / m as f64;
+    std::hint::black_box(sink);
+    let features_ns = full_ns - net_ns;
+    let field_features_ns = bound_ns - net_ns;
+    println!("# nimbus bench predict: one thread, {} ({} features)", model.name(), n_f);
+    println!("| measurement | ns per prediction | goal |");
+    println!("|---|---|---|");
+    println!("| network alone, one at a time | {net_ns:.0} | <= 3000 |");
+    println!("| network alone, batched (1024) | {batch_ns:.0} | |");
+    println!("| features + network, scene-a 128^3, rho {} | {full_ns:.0} | |", args.rho);
+    println!(
+        "| features alone, ray marched | {features_ns:.0} = {:.1} path-traced scattering events ({event_ns:.0} ns each) | |",
+        features_ns / event_ns
+    );
+    println!("| features + network, depth field (the renderer's path) | {bound_ns:.0} | |");
+    println!(
+        "| features alone, depth field | {field_features_ns:.0} = {:.2} path-traced scattering events | <= 5 events |",
+        field_features_ns / event_ns
+    );
+    let f = bound.field();
+    println!(
+        "| depth field build ({}^3 nodes x {} directions, {:.0} MiB, one thread) | {:.2} s once per cloud and sun | |",
+        f.nodes().x,
+        f.n_dirs(),
+        f.memory_bytes() as f64 / 1048576.0,
+        field_secs
+    );
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct BenchPredictP2pArgs {
+    /// Predictions per measurement.
+    #[arg(long, default_value_t = 2_000)]
+    pub n: usize,
+    /// Grid resolution of the benchmark cloud (scene-a).
+    #[arg(long, default_value_t = 128)]
+    pub resolution: u32,
+}
+
+/// Microseconds per point-to-point prediction on one thread: the density pyramid's
+/// build, the 351 density features and phi_D, and the thesis's deep residual network
+/// (Glorot-initialized: the cost does not depend on the weights) single and batched,
+/// with the MLP baseline beside it.
+pub fn bench_predict_p2p(args: BenchPredictP2pArgs) -> Result<()> {
+    use models::p2p::net::{P2pArch, P2pNetwork};
+    use models::p2p::{DensityPyramid, LocalFrame, P2pFeatures};
+    if args.n == 0 {
+        bail!("--n must be at least 1");
+    }
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    pool.install(|| -> Result<()> {
+        let params = modeler::preset("scene-a").context("scene-a preset")?;
+        let grid = modeler::build_grid(&params, args.resolution)?;
+        let spec = P2pFeatures::default();
+        let t = std::time::Instant::now();
+        // What `pyramid_for` builds (unit distance), kept at 32 bits as the baseline.
+        let full = DensityPyramid::new(&grid, spec.max_local_std());
+        let pyramid = full.quantized();
+        let build = t.elapsed().as_secs_f64();
+        println!("# nimbus bench predict-p2p: one thread, scene-a {}^3", args.resolution);
+        println!(
+            "density pyramid: {} levels, {:.1} MiB with 16-bit samples ({:.1} MiB at 32 bits), built in {:.2} s",
+            pyramid.levels(),
+            pyramid.bytes() as f64 / (1 << 20) as f64,
+            full.bytes() as f64 / (1 << 20) as f64,
+            build
+        );
+        let medium = engine::Medium::new(Arc::new(grid), 25.0, 0.99, engine::PhaseFunction::Isotropic)?;
+        let mut rng = Rng::new(1, 0, 0);
+        let mut frames = vec![];
+        while frames.len() < args.n {
+            let a = engine::integrator::p2p::sample_query_end(&medium, 2, &mut rng);
+            let b = engine::integrator::p2p::sample_query_end(&medium, 2, &mut rng);
+            if let (Some((e, _)), Some((s, _))) = (a, b) {
+                if let Some(f) = LocalFrame::new(e, s, 6.283 * rng.uniform()) {
+                    frames.push(f);
+                }
+            }
+        }
+        let mut x = vec![0.0f32; args.n * spec.len()];
+        // Both sample widths, alternating over three rounds (the best round of each),
+        // so that both see the same machine.
+        let (mut us16, mut us32) = (f64::INFINITY, f64::INFINITY);
+        for _ in 0..3 {
+            for (p, best) in [(&full, &mut us32), (&pyramid, &mut us16)] {
+                let t = std::time::Instant::now();
+                for (f, row) in frames.iter().zip(x.chunks_mut(spec.len())) {
+                    spec.write(p, 25.0, 0.99, f, row);
+                }
+                *best = best.min(t.elapsed().as_secs_f64() * 1e6 / args.n as f64);
+            }
+        }
+        // `x` now holds the 16-bit features (the renderer's).
+        let features_us = us16;
+        println!(
+            "features (351 densities + phi_D): {us16:.2} us per query with 16-bit samples, {us32:.2} us at 32 bits \
+             ({:.2}x faster)",
+            us32 / us16
+        );
+        println!("| network | parameters | single (us) | batched (us per prediction) | features + batched (us) |");
+        println!("|---|---|---|---|---|");
+        for (name, arch) in [
+            ("deep residual, 9 blocks of 3 x 200 (thesis)", P2pArch::default()),
+            ("deep residual, 9 blocks of 3 x 144", P2pArch::Residual { width: 144, layers: 3 }),
+            ("deep residual, 9 blocks of 2 x 128", P2pArch::Residual { width: 128, layers: 2 }),
+            ("MLP 2 x 200 (baseline)", P2pArch::Mlp { hidden: vec![200, 200] }),
+        ] {
+            let net = P2pNetwork::new(&spec, arch, 1, &candle_core::Device::Cpu)?;
+            let eval = net.evaluator()?;
+            let mut s = eval.scratch();
+            let t = std::time::Instant::now();
+            let mut sink = 0.0;
+            for row in x.chunks(spec.len()) {
+                sink += eval.forward(row, &mut s);
+            }
+            let single = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
+            let mut out = vec![0.0; args.n];
+            let mut bs = Default::default();
+            let t = std::time::Instant::now();
+            eval.forward_batch(&x, &mut out, &mut bs);
+            let batched = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
+            std::hint::black_box(sink + out[0]);
+            println!("| {name} | {} | {single:.1} | {batched:.1} | {:.1} |", net.parameters(), features_us + batched);
+        }
+        Ok(())
+    })
+}

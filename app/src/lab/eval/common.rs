@@ -1,0 +1,125 @@
+//! What both evaluations share: renders tracked pass by pass (time to preview), the
+//! render cache's files (image stacks as .npy, JSON), and image sheets.
+
+use crate::metrics::{Image, PREVIEW_RMSE, relative_rmse};
+use crate::output::write_bytes_atomically;
+use anyhow::{Result, bail};
+use engine::{Buffer, Film, Integrator, PassOutcome, RenderControl, Renderer, Scene};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// What a tracked render returns.
+pub(crate) struct Tracked {
+    pub film: Film,
+    /// Seconds spent rendering passes (the RMSE checks are not counted).
+    pub seconds: f64,
+    /// Render seconds until the image first came within 5 % relative RMSE.
+    pub preview_secs: Option<f64>,
+}
+
+/// Renders up to `spp` passes; with a reference, checks the relative RMSE after every
+/// pass and, if `stop_at_preview`, stops once it is within [`PREVIEW_RMSE`].
+pub(crate) fn render_tracked(
+    scene: Arc<Scene>,
+    integrator: Integrator,
+    spp: u32,
+    control: &RenderControl,
+    reference: Option<(&Image, &[bool])>,
+    stop_at_preview: bool,
+    mut on_pass: impl FnMut(u32),
+) -> Result<Tracked> {
+    let mut r = Renderer::new(scene, integrator)?;
+    let generation = control.generation();
+    let (mut seconds, mut preview_secs) = (0.0f64, None);
+    for done in 1..=spp {
+        let t = Instant::now();
+        if r.render_pass(control, generation) == PassOutcome::Cancelled {
+            bail!("stopped; finished renders are cached and a rerun resumes from them");
+        }
+        seconds += t.elapsed().as_secs_f64();
+        on_pass(done);
+        if let (Some((reference, mask)), None) = (reference, preview_secs) {
+            let film = r.film_handle();
+            let img = film.read().unwrap_or_else(|e| e.into_inner()).mean(Buffer::Full);
+            if relative_rmse(&img, reference, mask) <= PREVIEW_RMSE {
+                preview_secs = Some(seconds);
+                if stop_at_preview {
+                    break;
+                }
+            }
+        }
+    }
+    Ok(Tracked { film: r.snapshot(), seconds, preview_secs })
+}
+
+/// An image stack (layers of the same size) as one (h, w, 3 n) .npy file.
+pub(crate) fn image_npy(img: &[Vec<[f32; 3]>], w: u32, h: u32) -> Vec<u8> {
+    let mut flat = Vec::with_capacity(img.len() * (w * h * 3) as usize);
+    for i in 0..(w * h) as usize {
+        for layer in img {
+            flat.extend_from_slice(&layer[i]);
+        }
+    }
+    models::dataset::npy::npy_bytes_f32(&[h as usize, w as usize, 3 * img.len()], &flat)
+}
+
+/// Reads an (h, w, 3 n) image stack back as n layers.
+pub(crate) fn read_image_npy(path: &Path, w: u32, h: u32, n: usize) -> Result<Vec<Vec<[f32; 3]>>> {
+    let (shape, data) = models::dataset::npy::read_f32(path)?;
+    if shape != [h as usize, w as usize, 3 * n] {
+        bail!("{}: shape {shape:?}, expected [{h}, {w}, {}]", path.display(), 3 * n);
+    }
+    let mut layers = vec![Vec::with_capacity((w * h) as usize); n];
+    for px in data.chunks_exact(3 * n) {
+        for (l, layer) in layers.iter_mut().enumerate() {
+            layer.push([px[3 * l], px[3 * l + 1], px[3 * l + 2]]);
+        }
+    }
+    Ok(layers)
+}
+
+/// Writes `v` as pretty JSON, atomically.
+pub(crate) fn write_json(path: &Path, v: &impl Serialize) -> Result<()> {
+    Ok(write_bytes_atomically(path, serde_json::to_string_pretty(v)?.as_bytes())?)
+}
+
+/// Reads JSON written by [`write_json`]; None if missing or unreadable.
+pub(crate) fn read_json<T: for<'a> Deserialize<'a>>(path: &Path) -> Option<T> {
+    serde_json::from_str(&std::fs::read_to_string(path).ok()?).ok()
+}
+
+/// A grid of equally sized image tiles on a dark ground, 4 px apart.
+pub(crate) struct TileSheet {
+    image: image::RgbImage,
+    w: u32,
+    h: u32,
+}
+
+impl TileSheet {
+    const GAP: u32 = 4;
+
+    pub(crate) fn new(w: u32, h: u32, cols: u32, rows: u32) -> Self {
+        let (sw, sh) = (cols * (w + Self::GAP) - Self::GAP, rows * (h + Self::GAP));
+        TileSheet { image: image::RgbImage::from_pixel(sw.max(1), sh.max(1), image::Rgb([40, 40, 40])), w, h }
+    }
+
+    /// Puts a w x h tile (row-major pixels) at column `col`, row `row`.
+    pub(crate) fn put(&mut self, col: u32, row: u32, tile: &[[u8; 3]]) {
+        let (ox, oy) = (col * (self.w + Self::GAP), row * (self.h + Self::GAP));
+        for y in 0..self.h {
+            for x in 0..self.w {
+                self.image.put_pixel(ox + x, oy + y, image::Rgb(tile[(y * self.w + x) as usize]));
+            }
+        }
+    }
+
+    /// Writes the sheet as a PNG, atomically.
+    pub(crate) fn save(&self, path: &Path) -> Result<()> {
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        self.image.write_to(&mut bytes, image::ImageFormat::Png)?;
+        write_bytes_atomically(path, &bytes.into_inner())?;
+        Ok(())
+    }
+}

@@ -1,0 +1,631 @@
+//! `nimbus eval`: the thesis's evaluation of the global model (section 5.5, appendix B),
+//! with the figures of merit of docs/conventions.md.
+//!
+//! For every scene (A, B, C), lighting configuration (toplit, backlit, frontlit) and
+//! density scale rho (20/40/80 for A and B, 80/160/320 for C) it renders
+//! - the full-transport reference by path tracing (`--spp-ref`, seed 0), cached on disk;
+//! - for every k, the image with prediction at bounce k (`--spp`, seed 100 + k), which
+//!   also holds the path-traced low orders 1 .. k-1 in its low buffer;
+//!
+//! and reports bias (16x box downscale, mean |reference - prediction| over non-empty
+//! pixels), relative bias, TTUV (mean variance of the pixel estimate over non-empty
+//! pixels times render seconds), speedup (TTUV of the reference / TTUV of the
+//! prediction) and time to preview (seconds until the running image is within 5 %
+//! relative RMSE of the reference; path tracing gets its own run with another seed).
+//!
+//! Departure from the thesis (docs/conventions.md): the reference high-order
+//! image of the sheets is reference full minus the prediction run's low buffer (the
+//! same path-traced estimator of orders 1 .. k-1) instead of a separate low-order
+//! render per k; bias and speedup use full images only, exactly as the thesis did.
+//!
+//! Every finished render is cached (`OUT/cache`), so a stopped study resumes where it
+//! stopped, and `--scenes`, `--configs`, `--rho` and `--k` pick a subset.
+
+use super::common::{TileSheet, image_npy, read_image_npy, read_json, render_tracked, write_json};
+use crate::cli::common::{init_threads, progress_bar, stop_on_ctrl_c};
+use crate::metrics::{
+    Image, avg3, bias, false_colour, lit_mean, nonempty, projected_preview, reference_noise, relative_rmse_less, ttuv,
+};
+use crate::output::{ToneMap, write_bytes_atomically};
+use crate::scene::SceneFile;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use engine::{Buffer, DensityGrid, Integrator, RenderControl};
+use models::global::BoundGlobalModel;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+#[derive(Args, Debug, Clone)]
+pub struct EvalArgs {
+    /// Scenes: A (nearly convex), B (concave, multi-lobe), C (heterogeneous).
+    #[arg(long, value_delimiter = ',', default_value = "A,B,C")]
+    pub scenes: Vec<String>,
+    /// Lighting configurations.
+    #[arg(long, value_delimiter = ',', default_value = "toplit,backlit,frontlit")]
+    pub configs: Vec<String>,
+    /// Density scales (default: 20,40,80 for A and B, 80,160,320 for C).
+    #[arg(long, value_delimiter = ',')]
+    pub rho: Vec<f32>,
+    /// Bounces at which the model predicts.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4,8")]
+    pub k: Vec<u32>,
+    /// Image width and height in pixels.
+    #[arg(long, default_value_t = 512)]
+    pub size: u32,
+    /// Samples per pixel of the full-transport reference (thesis: 4096).
+    #[arg(long, default_value_t = 4096)]
+    pub spp_ref: u32,
+    /// Samples per pixel of the predictions (thesis: 2048).
+    #[arg(long, default_value_t = 2048)]
+    pub spp: u32,
+    /// Prediction probability p (thesis: 0.25).
+    #[arg(long, default_value_t = 0.25)]
+    pub p: f32,
+    /// Choose p per configuration and k by minimizing TTUV from pilot passes
+    /// (`progressive::auto_p`) instead of `--p`.
+    #[arg(long)]
+    pub auto_p: bool,
+    /// Density grid resolution of the clouds.
+    #[arg(long, default_value_t = 128)]
+    pub res: u32,
+    /// Depth-field nodes per axis of the model's features.
+    #[arg(long, default_value_t = models::global::depth_field::DEFAULT_MAX_NODES)]
+    pub field_nodes: u32,
+    /// The global model (default: the shipped one).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Also measure path tracing's time to preview (a second path-traced run per
+    /// configuration, another seed, until 5 % relative RMSE against the reference, its
+    /// own noise subtracted, or --preview-spp samples), and report every prediction's
+    /// RMSE floor and projected time to preview.
+    #[arg(long)]
+    pub preview: bool,
+    /// Sample cap of path tracing's preview run (default: 4 x spp-ref).
+    #[arg(long)]
+    pub preview_spp: Option<u32>,
+    /// Output directory (tables, plots, sheets, and the render cache).
+    #[arg(long, default_value = "out/eval")]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// The evaluation scenes: label, modeler preset, default density scales.
+pub const SCENES: [(&str, &str, [f32; 3]); 3] = [
+    ("A", "scene-a", [20.0, 40.0, 80.0]),
+    ("B", "scene-b", [20.0, 40.0, 80.0]),
+    ("C", "scene-c", [80.0, 160.0, 320.0]),
+];
+
+/// Thesis table B.2 / 5.2, scene A: speedup at k = 1 and k = 2 (config, rho, [k1, k2]).
+pub const THESIS_SCENE_A_SPEEDUP: [(&str, f32, [f64; 2]); 9] = [
+    ("toplit", 20.0, [9.2, 6.7]),
+    ("toplit", 40.0, [16.5, 12.6]),
+    ("toplit", 80.0, [25.4, 20.6]),
+    ("backlit", 20.0, [6.0, 4.0]),
+    ("backlit", 40.0, [14.1, 9.7]),
+    ("backlit", 80.0, [25.7, 20.7]),
+    ("frontlit", 20.0, [9.8, 8.1]),
+    ("frontlit", 40.0, [13.9, 11.8]),
+    ("frontlit", 80.0, [18.5, 16.0]),
+];
+
+/// Thesis table B.1, scene A: absolute bias at k = 1, 2, 4, 8.
+pub const THESIS_SCENE_A_BIAS: [(&str, f32, [f64; 4]); 9] = [
+    ("toplit", 20.0, [0.0213, 0.0157, 0.0077, 0.0027]),
+    ("toplit", 40.0, [0.0290, 0.0244, 0.0161, 0.0071]),
+    ("toplit", 80.0, [0.0318, 0.0271, 0.0208, 0.0126]),
+    ("backlit", 20.0, [0.0324, 0.0156, 0.0081, 0.0037]),
+    ("backlit", 40.0, [0.0363, 0.0164, 0.0113, 0.0066]),
+    ("backlit", 80.0, [0.0421, 0.0210, 0.0133, 0.0091]),
+    ("frontlit", 20.0, [0.0156, 0.0117, 0.0069, 0.0026]),
+    ("frontlit", 40.0, [0.0234, 0.0195, 0.0143, 0.0078]),
+    ("frontlit", 80.0, [0.0279, 0.0243, 0.0206, 0.0162]),
+];
+
+/// The figures of merit of one (scene, config, rho, k) cell.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CellResult {
+    pub scene: String,
+    pub config: String,
+    pub rho: f32,
+    pub k: u32,
+    pub p: f32,
+    pub spp_ref: u32,
+    pub spp: u32,
+    pub size: u32,
+    /// Absolute bias (docs/conventions.md).
+    pub bias: f64,
+    /// bias / mean reference over the same pixels.
+    pub rel_bias: f64,
+    /// The bias that noise alone would show (both images' variances, after the
+    /// downscale), relative: bias values near it are not resolved.
+    pub rel_noise_floor: f64,
+    pub ttuv_ref: f64,
+    pub ttuv_pred: f64,
+    pub speedup: f64,
+    pub secs_ref: f64,
+    pub secs_pred: f64,
+    /// Seconds to build the model's depth field for this cloud and sun (once per
+    /// configuration; not part of TTUV).
+    pub secs_field: f64,
+    /// Seconds of the automatic-p pilot passes (0 without --auto-p; not part of TTUV).
+    pub secs_pilot: f64,
+    pub preview_secs_pred: Option<f64>,
+    pub preview_secs_ref: Option<f64>,
+    /// The prediction's relative RMSE once its noise is gone (its bias part; see
+    /// [`relative_rmse_less`]): at or above [`PREVIEW_RMSE`] it never previews.
+    #[serde(default)]
+    pub rmse_floor: Option<f64>,
+    /// Seconds to preview projected from TTUV and the floor (variance falls as 1/t):
+    /// TTUV / (mean^2 (0.05^2 - floor^2)); None when the floor is at or above 5 %.
+    #[serde(default)]
+    pub preview_projected_pred: Option<f64>,
+    /// The same projection for path tracing (floor 0: it is unbiased), a check on the
+    /// measured `preview_secs_ref`.
+    #[serde(default)]
+    pub preview_projected_ref: Option<f64>,
+    /// The reference's own relative noise ([`reference_noise`]).
+    #[serde(default)]
+    pub ref_noise: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct ReferenceMeta {
+    spp: u32,
+    seconds: f64,
+    ttuv: f64,
+    preview_secs: Option<f64>,
+    /// Whether the path-traced preview run was made (it may not have reached 5 %).
+    #[serde(default)]
+    preview_tried: bool,
+}
+
+/// The render cache's name for a model: a fingerprint of its bytes (weights and
+/// sidecar), so a model retrained into the same file, or a new shipped one, never
+/// reuses old renders, and a file with the shipped bytes shares the shipped one's.
+fn model_id(args: &EvalArgs) -> Result<String> {
+    Ok(match &args.model {
+        Some(path) => format!("{:016x}", models::fingerprint::model_file_fingerprint(path)?),
+        None => format!("{:016x}", models::global::model::shipped_fingerprint()),
+    })
+}
+
+/// The cache name of one prediction cell: everything its numbers depend on.
+fn cell_key(key: &str, k: u32, args: &EvalArgs, model_id: &str) -> String {
+    let p = if args.auto_p { "auto".to_string() } else { args.p.to_string() };
+    format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}_{model_id}", args.spp, args.spp_ref, args.field_nodes)
+}
+
+/// The scene file of one evaluation configuration.
+pub fn eval_scene(preset: &str, config: &str, rho: f32, size: u32, res: u32) -> Result<SceneFile> {
+    let text = format!(
+        "[grid]\npreset = \"{preset}\"\nresolution = {res}\n[medium]\nrho = {rho}\nalbedo = 1.0\nphase = \"hg\"\ng = 0.85\n\
+         [camera]\npreset = \"{config}\"\nwidth = {size}\nheight = {size}\n"
+    );
+    let s = SceneFile::from_toml_str(&text, "evaluation scene")?;
+    s.validate()?;
+    Ok(s)
+}
+
+/// Runs the study (or the selected part of it); returns every cell's result.
+pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
+    let threads = init_threads(args.threads)?;
+    for c in &args.configs {
+        if crate::scene::CameraPreset::from_name(c).is_none() {
+            bail!("--configs {c}: choose from toplit, backlit, frontlit");
+        }
+    }
+    let mut scenes = vec![];
+    for s in &args.scenes {
+        let found = SCENES.iter().find(|(l, _, _)| l.eq_ignore_ascii_case(s));
+        scenes.push(*found.with_context(|| format!("--scenes {s}: choose from A, B, C"))?);
+    }
+    if args.k.is_empty() || args.k.iter().any(|k| !(1..=64).contains(k)) {
+        bail!("--k {:?}: every k must lie in 1 ..= 64", args.k);
+    }
+    if !(args.p > 0.0 && args.p <= 1.0) {
+        bail!("--p {}: must lie in (0, 1]", args.p);
+    }
+    if args.spp < 2 || args.spp_ref < 2 || args.size == 0 {
+        bail!("--spp and --spp-ref must be at least 2 (variances need two samples), --size at least 1");
+    }
+    let model = match &args.model {
+        Some(p) => Arc::new(models::global::GlobalModel::load(p)?),
+        None => models::global::GlobalModel::shipped()?,
+    };
+    let model_id = model_id(args).context("--model")?;
+    let control = Arc::new(RenderControl::new());
+    stop_on_ctrl_c(&control);
+    let cache = args.out.join("cache");
+    std::fs::create_dir_all(&cache).with_context(|| format!("cannot create {}", cache.display()))?;
+    let groups: Vec<(&str, &str, String, f32)> = scenes
+        .iter()
+        .flat_map(|(label, preset, rhos)| {
+            let rhos: Vec<f32> = if args.rho.is_empty() { rhos.to_vec() } else { args.rho.clone() };
+            args.configs
+                .iter()
+                .flat_map(move |c| rhos.clone().into_iter().map(move |r| (*label, *preset, c.clone(), r)))
+        })
+        .collect();
+    if !args.quiet {
+        eprintln!(
+            "nimbus eval: {} configurations x k {:?}, {}x{}, reference {} spp, predictions {} spp, p {}, {threads} threads, model {}",
+            groups.len(),
+            args.k,
+            args.size,
+            args.size,
+            args.spp_ref,
+            args.spp,
+            args.p,
+            args.model.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "shipped".into())
+        );
+    }
+    let renders_per_group = args.spp_ref as u64 + args.spp as u64 * args.k.len() as u64;
+    let bar = progress_bar(groups.len() as u64 * renders_per_group, "passes", args.quiet);
+    let mut results = vec![];
+    let mut grids: Vec<(String, Arc<DensityGrid>)> = vec![];
+    for (gi, (label, preset, config, rho)) in groups.iter().enumerate() {
+        let base = (gi as u64) * renders_per_group;
+        bar.set_position(base);
+        bar.set_message(format!("scene {label} {config} rho {rho}"));
+        let file = eval_scene(preset, config, *rho, args.size, args.res)?;
+        let grid = match grids.iter().find(|(p, _)| p == preset) {
+            Some((_, g)) => g.clone(),
+            None => {
+                let g = Arc::new(file.build_grid()?);
+                grids.push((preset.to_string(), g.clone()));
+                g
+            }
+        };
+        let scene = Arc::new(file.build_scene(Some(grid))?);
+        let key = format!("{label}_{config}_rho{rho}_{}px_res{}", args.size, args.res);
+        // The reference, from the cache or rendered now.
+        let ref_npy = cache.join(format!("{key}_ref{}.npy", args.spp_ref));
+        let ref_json = ref_npy.with_extension("json");
+        // Full transport by path tracing with the given seed.
+        let path_traced = |seed: u64| -> Result<Integrator> {
+            let mut f = file.clone();
+            (f.seed, f.k) = (seed, 1);
+            Ok(f.integrator_with(None)?)
+        };
+        let (reference, mut meta) = match (read_json::<ReferenceMeta>(&ref_json), ref_npy.exists()) {
+            (Some(meta), true) => {
+                let layers = read_image_npy(&ref_npy, args.size, args.size, 2)?;
+                let mut it = layers.into_iter();
+                let (mean, var) = (it.next().unwrap(), it.next().unwrap());
+                (Image { w: args.size, h: args.size, mean, var }, meta)
+            }
+            _ => {
+                let t = render_tracked(scene.clone(), path_traced(0)?, args.spp_ref, &control, None, false, |d| {
+                    bar.set_position(base + d as u64)
+                })?;
+                let img = Image::from_film(&t.film, Buffer::Full);
+                let mask = nonempty(&img.mean);
+                let meta = ReferenceMeta {
+                    spp: args.spp_ref,
+                    seconds: t.seconds,
+                    ttuv: ttuv(&img.var, &mask, t.seconds),
+                    preview_secs: None,
+                    preview_tried: false,
+                };
+                write_bytes_atomically(
+                    &ref_npy,
+                    &image_npy(&[img.mean.clone(), img.var.clone()], args.size, args.size),
+                )?;
+                write_json(&ref_json, &meta)?;
+                (img, meta)
+            }
+        };
+        let mask = nonempty(&reference.mean);
+        let ref_mean = lit_mean(&reference.mean);
+        let ref_noise = reference_noise(&reference, &mask);
+        if args.preview && !meta.preview_tried {
+            // The reference's own noise is subtracted (`relative_rmse`), so path tracing
+            // may need more samples than the reference has.
+            let t = render_tracked(
+                scene.clone(),
+                path_traced(7)?,
+                args.preview_spp.unwrap_or(args.spp_ref.saturating_mul(4)).max(1),
+                &control,
+                Some((&reference, &mask)),
+                true,
+                |_| {},
+            )?;
+            (meta.preview_secs, meta.preview_tried) = (t.preview_secs, true);
+            write_json(&ref_json, &meta)?;
+        }
+        // The model bound to this cloud and sun, built once for every k.
+        let mut bound: Option<(Arc<BoundGlobalModel>, f64)> = None;
+        let mut group_cells = vec![];
+        for (ki, &k) in args.k.iter().enumerate() {
+            let kbase = base + args.spp_ref as u64 + ki as u64 * args.spp as u64;
+            bar.set_position(kbase);
+            let cell_key = cell_key(&key, k, args, &model_id);
+            let cell_json = cache.join(format!("{cell_key}.json"));
+            let cell_npy = cache.join(format!("{cell_key}.npy"));
+            if let (Some(cell), true) = (read_json::<CellResult>(&cell_json), cell_npy.exists()) {
+                group_cells.push(cell);
+                continue;
+            }
+            let (pred, secs_field) = match &bound {
+                Some(b) => b.clone(),
+                None => {
+                    let t = Instant::now();
+                    let sun = scene.sun.as_ref().expect("evaluation scenes have a sun");
+                    let b = Arc::new(BoundGlobalModel::new(model.clone(), &scene.medium, sun, args.field_nodes));
+                    let built = (b, t.elapsed().as_secs_f64());
+                    bound = Some(built.clone());
+                    built
+                }
+            };
+            let mut f = file.clone();
+            f.seed = 100 + k as u64;
+            f.k = k;
+            f.render.mode = "predict".into();
+            f.render.p = args.p;
+            let t_pilot = Instant::now();
+            if args.auto_p {
+                f.render.p = crate::progressive::auto_p(scene.clone(), f.settings(), pred.clone(), 8, &control)?.p;
+            }
+            let secs_pilot = if args.auto_p { t_pilot.elapsed().as_secs_f64() } else { 0.0 };
+            let integrator = f.integrator_with(Some(pred))?;
+            let t =
+                render_tracked(scene.clone(), integrator, args.spp, &control, Some((&reference, &mask)), false, |d| {
+                    bar.set_position(kbase + d as u64)
+                })?;
+            let full = Image::from_film(&t.film, Buffer::Full);
+            let (b, rb, floor) = bias(&reference, &full);
+            let ttuv_pred = ttuv(&full.var, &mask, t.seconds);
+            let rmse_floor = relative_rmse_less(&full.mean, &reference, &mask, Some(&full.var));
+            let cell = CellResult {
+                scene: label.to_string(),
+                config: config.clone(),
+                rho: *rho,
+                k,
+                p: f.render.p,
+                spp_ref: args.spp_ref,
+                spp: args.spp,
+                size: args.size,
+                bias: b,
+                rel_bias: rb,
+                rel_noise_floor: floor,
+                ttuv_ref: meta.ttuv,
+                ttuv_pred,
+                speedup: if ttuv_pred > 0.0 { meta.ttuv / ttuv_pred } else { f64::INFINITY },
+                secs_ref: meta.seconds,
+                secs_pred: t.seconds,
+                secs_field,
+                secs_pilot,
+                preview_secs_pred: t.preview_secs,
+                preview_secs_ref: meta.preview_secs,
+                rmse_floor: Some(rmse_floor),
+                preview_projected_pred: projected_preview(ttuv_pred, ref_mean, rmse_floor),
+                preview_projected_ref: None,
+                ref_noise: None,
+            };
+            let layers = [full.mean, t.film.mean(Buffer::Low), t.film.mean(Buffer::High)];
+            write_bytes_atomically(&cell_npy, &image_npy(&layers, args.size, args.size))?;
+            write_json(&cell_json, &cell)?;
+            group_cells.push(cell);
+        }
+        // Fill in what a cached cell could not know (a later --preview run, or a
+        // reference rendered again: speedups compare timings of the same run).
+        for c in &mut group_cells {
+            (c.ttuv_ref, c.secs_ref) = (meta.ttuv, meta.seconds);
+            c.speedup = if c.ttuv_pred > 0.0 { meta.ttuv / c.ttuv_pred } else { f64::INFINITY };
+            c.preview_secs_ref = meta.preview_secs;
+            c.preview_projected_ref = projected_preview(meta.ttuv, ref_mean, 0.0);
+            c.ref_noise = Some(ref_noise);
+        }
+        write_sheet(&args.out.join(format!("sheet_{key}.png")), &reference, &cache, &key, args, &model_id)?;
+        results.extend(group_cells);
+    }
+    bar.finish_and_clear();
+    write_reports(&args.out, &results, args)?;
+    Ok(results)
+}
+
+/// One PNG per configuration, one row per k: reference full, prediction full,
+/// low orders (1 .. k-1), reference high orders (reference - low), predicted high
+/// orders, and |predicted - reference high| in false colour (scale: black 0, yellow
+/// = the mean reference high order over lit pixels, as in the window), like the
+/// thesis's figure 5.9.
+fn write_sheet(path: &Path, reference: &Image, cache: &Path, key: &str, args: &EvalArgs, model_id: &str) -> Result<()> {
+    let (w, h) = (reference.w, reference.h);
+    let mut sheet = TileSheet::new(w, h, 6, args.k.len() as u32);
+    let tone = ToneMap::Filmic;
+    for (row, &k) in args.k.iter().enumerate() {
+        let cell_npy = cache.join(format!("{}.npy", cell_key(key, k, args, model_id)));
+        let Ok(layers) = read_image_npy(&cell_npy, w, h, 3) else { continue };
+        let (full, low, high) = (&layers[0], &layers[1], &layers[2]);
+        let ref_high: Vec<[f32; 3]> =
+            reference.mean.iter().zip(low).map(|(r, l)| std::array::from_fn(|c| (r[c] - l[c]).max(0.0))).collect();
+        // The error's colour scale, as in the window: yellow at the mean reference high.
+        let scale = lit_mean(&ref_high).max(1e-12);
+        let toned = |img: &Vec<[f32; 3]>| img.iter().map(|p| p.map(|v| tone.apply(v, 0.0))).collect::<Vec<[u8; 3]>>();
+        let error: Vec<[u8; 3]> = high
+            .iter()
+            .zip(&ref_high)
+            .map(|(a, b)| false_colour((avg3(&std::array::from_fn(|c| (a[c] - b[c]).abs())) / scale) as f32))
+            .collect();
+        let tiles = [toned(&reference.mean), toned(full), toned(low), toned(&ref_high), toned(high), error];
+        for (col, tile) in tiles.iter().enumerate() {
+            sheet.put(col as u32, row as u32, tile);
+        }
+    }
+    sheet.save(path)
+}
+
+fn fmt_opt(v: Option<f64>) -> String {
+    v.map(|s| format!("{s:.1}")).unwrap_or_else(|| "-".into())
+}
+
+/// results.csv, results.md (tables like the thesis's B.1-B.6) and the bias and speedup
+/// plots against k (figure 5.8), one pair per scene.
+fn write_reports(out: &Path, results: &[CellResult], args: &EvalArgs) -> Result<()> {
+    let mut csv = String::from(
+        "scene,config,rho,k,p,size,spp_ref,spp,bias,rel_bias,rel_noise_floor,ttuv_ref,ttuv_pred,speedup,secs_ref,secs_pred,secs_field,secs_pilot,preview_secs_ref,preview_secs_pred,rmse_floor,preview_projected_ref,preview_projected_pred,ref_noise\n",
+    );
+    for c in results {
+        csv += &format!(
+            "{},{},{},{},{},{},{},{},{:.6e},{:.6},{:.6},{:.6e},{:.6e},{:.3},{:.2},{:.2},{:.2},{:.2},{},{},{},{},{},{}\n",
+            c.scene,
+            c.config,
+            c.rho,
+            c.k,
+            c.p,
+            c.size,
+            c.spp_ref,
+            c.spp,
+            c.bias,
+            c.rel_bias,
+            c.rel_noise_floor,
+            c.ttuv_ref,
+            c.ttuv_pred,
+            c.speedup,
+            c.secs_ref,
+            c.secs_pred,
+            c.secs_field,
+            c.secs_pilot,
+            c.preview_secs_ref.map(|v| v.to_string()).unwrap_or_default(),
+            c.preview_secs_pred.map(|v| v.to_string()).unwrap_or_default(),
+            c.rmse_floor.map(|v| v.to_string()).unwrap_or_default(),
+            c.preview_projected_ref.map(|v| v.to_string()).unwrap_or_default(),
+            c.preview_projected_pred.map(|v| v.to_string()).unwrap_or_default(),
+            c.ref_noise.map(|v| v.to_string()).unwrap_or_default()
+        );
+    }
+    write_bytes_atomically(&out.join("results.csv"), csv.as_bytes())?;
+    let mut md = format!(
+        "# nimbus eval\n\n{}x{} pixels, reference {} spp, predictions {} spp, p = {}, grids {}^3, albedo 1, HG g = 0.85.\n\
+         Cells: relative bias (noise floor) / speedup in TTUV. Bias as in docs/conventions.md (16x box downscale).\n",
+        args.size,
+        args.size,
+        args.spp_ref,
+        args.spp,
+        if args.auto_p { "automatic (per cell, see results.csv)".to_string() } else { args.p.to_string() },
+        args.res
+    );
+    let mut scenes: Vec<&str> = results.iter().map(|c| c.scene.as_str()).collect();
+    scenes.dedup();
+    for s in &scenes {
+        let mut ks: Vec<u32> = results.iter().filter(|c| c.scene == *s).map(|c| c.k).collect();
+        ks.sort();
+        ks.dedup();
+        md += &format!(
+            "\n## Scene {s}\n\n| config | rho | TTUV reference | {} |\n|---|---|---|{}\n",
+            ks.iter().map(|k| format!("k = {k}")).collect::<Vec<_>>().join(" | "),
+            "---|".repeat(ks.len())
+        );
+        let mut rows: Vec<(&str, f32)> =
+            results.iter().filter(|c| c.scene == *s).map(|c| (c.config.as_str(), c.rho)).collect();
+        rows.dedup();
+        for (config, rho) in &rows {
+            let cells: Vec<&CellResult> =
+                results.iter().filter(|c| c.scene == *s && c.config == *config && c.rho == *rho).collect();
+            let ttuv_ref = cells.first().map(|c| c.ttuv_ref).unwrap_or(0.0);
+            let cols: Vec<String> = ks
+                .iter()
+                .map(|k| match cells.iter().find(|c| c.k == *k) {
+                    Some(c) => {
+                        format!("{:.2} % ({:.2} %) / {:.1}x", 100.0 * c.rel_bias, 100.0 * c.rel_noise_floor, c.speedup)
+                    }
+                    None => "-".into(),
+                })
+                .collect();
+            md += &format!("| {config} | {rho} | {ttuv_ref:.3e} | {} |\n", cols.join(" | "));
+        }
+        if *s == "A" {
+            md += "\nScene A beside the thesis (table B.2 speedup, B.1 absolute bias; our bias is in the units of a unit-radiance sun, like the thesis's):\n\n\
+                   | config | rho | speedup k=1 (thesis) | speedup k=2 (thesis) | bias k=1 (thesis) |\n|---|---|---|---|---|\n";
+            for (config, rho, sp) in THESIS_SCENE_A_SPEEDUP {
+                let get =
+                    |k: u32| results.iter().find(|c| c.scene == "A" && c.config == config && c.rho == rho && c.k == k);
+                let bias_t =
+                    THESIS_SCENE_A_BIAS.iter().find(|b| b.0 == config && b.1 == rho).map(|b| b.2[0]).unwrap_or(0.0);
+                if get(1).is_none() && get(2).is_none() {
+                    continue;
+                }
+                md += &format!(
+                    "| {config} | {rho} | {} ({:.1}x) | {} ({:.1}x) | {} ({bias_t}) |\n",
+                    get(1).map(|c| format!("{:.1}x", c.speedup)).unwrap_or("-".into()),
+                    sp[0],
+                    get(2).map(|c| format!("{:.1}x", c.speedup)).unwrap_or("-".into()),
+                    sp[1],
+                    get(1).map(|c| format!("{:.4}", c.bias)).unwrap_or("-".into()),
+                );
+            }
+        }
+        let previews: Vec<&CellResult> = results
+            .iter()
+            .filter(|c| {
+                c.scene == *s && (args.preview || c.preview_secs_ref.is_some() || c.preview_secs_pred.is_some())
+            })
+            .collect();
+        if !previews.is_empty() {
+            md += "\nTime to preview (5 % relative RMSE against the converged image, the reference's own noise \
+                   subtracted), seconds measured (projected from TTUV); the prediction's RMSE floor is its bias part, \
+                   at or above 5 % it never previews:\n\n\
+                   | config | rho | k | reference noise | path tracing | prediction | prediction floor | ratio |\n|---|---|---|---|---|---|---|---|\n";
+            for c in previews {
+                let secs = |m: Option<f64>, p: Option<f64>| format!("{} ({})", fmt_opt(m), fmt_opt(p));
+                let ratio = match (
+                    c.preview_secs_ref.or(c.preview_projected_ref),
+                    c.preview_secs_pred.or(c.preview_projected_pred),
+                ) {
+                    (Some(a), Some(b)) if b > 0.0 => format!("{:.1}x", a / b),
+                    _ => "-".into(),
+                };
+                md += &format!(
+                    "| {} | {} | {} | {} | {} | {} | {} | {ratio} |\n",
+                    c.config,
+                    c.rho,
+                    c.k,
+                    c.ref_noise.map(|v| format!("{:.1} %", 100.0 * v)).unwrap_or("-".into()),
+                    secs(c.preview_secs_ref, c.preview_projected_ref),
+                    secs(c.preview_secs_pred, c.preview_projected_pred),
+                    c.rmse_floor.map(|v| format!("{:.1} %", 100.0 * v)).unwrap_or("-".into()),
+                );
+            }
+        }
+        // Plots against k, one series per (config, rho).
+        let mut bias_series = vec![];
+        let mut speed_series = vec![];
+        for (i, (config, rho)) in rows.iter().enumerate() {
+            let cells: Vec<&CellResult> =
+                results.iter().filter(|c| c.scene == *s && c.config == *config && c.rho == *rho).collect();
+            let colour = models::plot::PALETTE[i % models::plot::PALETTE.len()];
+            let label = format!("{config} {rho}");
+            bias_series.push(models::plot::Series {
+                label: label.clone(),
+                colour,
+                points: cells.iter().map(|c| (c.k as f64, c.rel_bias)).collect(),
+            });
+            speed_series.push(models::plot::Series {
+                label,
+                colour,
+                points: cells.iter().map(|c| (c.k as f64, c.speedup)).collect(),
+            });
+        }
+        let title = format!("scene {s}");
+        write_bytes_atomically(
+            &out.join(format!("bias_{s}.png")),
+            &models::plot::line_plot_png(&title, "k", "relative bias", &bias_series),
+        )?;
+        write_bytes_atomically(
+            &out.join(format!("speedup_{s}.png")),
+            &models::plot::line_plot_png(&title, "k", "speedup", &speed_series),
+        )?;
+    }
+    write_bytes_atomically(&out.join("results.md"), md.as_bytes())?;
+    if !args.quiet {
+        println!("{md}");
+        eprintln!("wrote results.md, results.csv, plots and sheets to {}", out.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,430 @@
+//! The global transport model as the renderer uses it: the model files (safetensors
+//! weights + JSON sidecar), the target transformation (thesis eqs. 5.8-5.9), and an
+//! allocation-free f32 evaluator of the MLP that implements the engine's
+//! [`InScatterPredictor`].
+//!
+//! Target transformation: y = ln(1 + L_i / p(omega_q, omega_L)) with p the
+//! Henyey-Greenstein phase value of single scattering toward omega_q (cos = cos theta,
+//! theta the query angle from the light), then standardized; every feature is
+//! standardized too. Statistics come from the training split and live in the sidecar.
+
+use super::depth_field::DepthField;
+use super::directions::{DirectionSetKind, LightFrame};
+use super::features::FeatureExtractor;
+use crate::nn::dense::Activation;
+use crate::nn::mlp::{Mlp, Scratch};
+use engine::{InScatterPredictor, Medium, PhaseFunction, Sun};
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+use std::cell::RefCell;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+pub const MODEL_FORMAT: &str = "nimbus-global-model";
+pub const MODEL_FORMAT_VERSION: u32 = 1;
+
+/// Where the shipped model lives in the repository (its bytes are compiled in).
+pub const SHIPPED_PATH: &str = "assets/models/global.safetensors";
+const SHIPPED_WEIGHTS: &[u8] = include_bytes!("../../../assets/models/global.safetensors");
+const SHIPPED_SIDECAR: &str = include_str!("../../../assets/models/global.json");
+
+/// [`crate::fingerprint::fingerprint`] of the shipped model's weights and sidecar.
+pub fn shipped_fingerprint() -> u64 {
+    crate::fingerprint::fingerprint(&[SHIPPED_WEIGHTS, SHIPPED_SIDECAR.as_bytes()])
+}
+
+/// How theta and phi are measured; a model trained under another convention is refused.
+pub const ANGLE_CONVENTION: &str = "light frame: z = -omega_L (toward the light), x, y = engine::sampling::coordinate_system(z); theta = acos(z) of omega_q in [0, pi], phi = atan2(y, x) in [0, 2 pi); omega_q points away from the query point";
+
+/// The feature layout a model expects.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FeatureLayout {
+    pub n_dirs: usize,
+    pub direction_set: DirectionSetKind,
+    pub names: Vec<String>,
+    pub angle_convention: String,
+    /// "tau_hat = ln(1 / (1 + tau))" (thesis eq. 5.7)
+    pub optical_depth: String,
+}
+
+impl FeatureLayout {
+    /// What this code computes for `n_dirs` directions of `set`.
+    pub fn current(set: DirectionSetKind, n_dirs: usize) -> Self {
+        let mut names: Vec<String> = ["albedo", "g", "theta", "phi"].iter().map(|s| s.to_string()).collect();
+        names.extend((1..=n_dirs).map(|i| format!("tau_hat_{i}")));
+        FeatureLayout {
+            n_dirs,
+            direction_set: set,
+            names,
+            angle_convention: ANGLE_CONVENTION.into(),
+            optical_depth: "tau_hat = ln(1 / (1 + tau))".into(),
+        }
+    }
+
+    /// Differences from what the code computes, one per line; None if it matches.
+    pub fn mismatch(&self) -> Option<String> {
+        if self.direction_set.directions(self.n_dirs).is_none() {
+            return Some(format!("n_dirs {} is not offered by the {} set", self.n_dirs, self.direction_set.name()));
+        }
+        let cur = FeatureLayout::current(self.direction_set, self.n_dirs);
+        let mut out = vec![];
+        if self.names != cur.names {
+            out.push(format!("feature names {:?} differ from the code's {:?}", self.names, cur.names));
+        }
+        if self.angle_convention != cur.angle_convention {
+            out.push(format!(
+                "angle convention {:?} differs from the code's {:?}",
+                self.angle_convention, cur.angle_convention
+            ));
+        }
+        if self.optical_depth != cur.optical_depth {
+            out.push(format!(
+                "optical depth transform {:?} differs from the code's {:?}",
+                self.optical_depth, cur.optical_depth
+            ));
+        }
+        (!out.is_empty()).then(|| out.join("; "))
+    }
+}
+
+/// Feature and target standardization, from the training split.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Standardization {
+    pub feature_mean: Vec<f32>,
+    /// 1 where a feature is constant in the training data.
+    pub feature_std: Vec<f32>,
+    /// "ln(1 + L_i / p_HG(g, cos theta))" (thesis eqs. 5.8-5.9)
+    pub target: String,
+    pub target_mean: f32,
+    pub target_std: f32,
+}
+
+pub const TARGET_TRANSFORM: &str = "ln(1 + L_i / p_HG(g, cos theta))";
+pub const TARGET_TRANSFORM_MULTIPLE: &str = "ln(1 + 4 pi max(0, L_i - p_HG(g, cos theta) exp(-tau_1)))";
+
+/// What the network predicts.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TargetKind {
+    /// The thesis's target: all of L_i, single scattering included, transformed by eqs.
+    /// 5.8-5.9 ([`TARGET_TRANSFORM`]).
+    #[default]
+    Total,
+    /// Multiple scattering only: L_ms = L_i - p_HG(g, cos theta) exp(-tau_1), the
+    /// ground truth minus its exact single-scattering term (tau_1 is the feature toward
+    /// the light, so L_ms follows from the stored data), transformed by
+    /// ln(1 + 4 pi L_ms) ([`TARGET_TRANSFORM_MULTIPLE`]). The renderer path traces single
+    /// scattering at vertex k by NEE and adds the prediction; the peaked part of L_i
+    /// (forward scattering toward a backlit camera) is then never learned. A departure
+    /// from the thesis (docs/conventions.md, "Where Nimbus departs").
+    Multiple,
+}
+
+impl TargetKind {
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "total" => Some(TargetKind::Total),
+            "multiple" => Some(TargetKind::Multiple),
+            _ => None,
+        }
+    }
+
+    /// The transform's description, stored in the sidecar and checked on load.
+    pub fn transform(self) -> &'static str {
+        match self {
+            TargetKind::Total => TARGET_TRANSFORM,
+            TargetKind::Multiple => TARGET_TRANSFORM_MULTIPLE,
+        }
+    }
+
+    fn from_transform(s: &str) -> Option<Self> {
+        [TargetKind::Total, TargetKind::Multiple].into_iter().find(|k| k.transform() == s)
+    }
+}
+
+/// The single-scattering phase value of eq. 5.8 from a feature row (g and theta).
+#[inline]
+pub fn single_scattering_phase(features: &[f32]) -> f32 {
+    PhaseFunction::HenyeyGreenstein { g: features[1] }.eval_cos(features[2].cos())
+}
+
+/// Exact single scattering of a unit light from a feature row: the phase value times
+/// the transmittance toward the light, exp(-tau_1) with tau_1 = exp(-tau_hat_1) - 1.
+#[inline]
+pub fn single_scattering(features: &[f32]) -> f32 {
+    single_scattering_phase(features) * (1.0 - (-features[4]).exp()).exp()
+}
+
+/// The transformed target (before standardization) of a measured L_i.
+#[inline]
+pub fn transform_target(kind: TargetKind, features: &[f32], l_i: f32) -> f32 {
+    match kind {
+        TargetKind::Total => (l_i.max(0.0) / single_scattering_phase(features)).ln_1p(),
+        TargetKind::Multiple => ((l_i - single_scattering(features)).max(0.0) * 4.0 * std::f32::consts::PI).ln_1p(),
+    }
+}
+
+/// The inverse: what the network predicts (L_i, or L_ms for [`TargetKind::Multiple`])
+/// from its un-standardized output.
+#[inline]
+pub fn untransform_target(kind: TargetKind, features: &[f32], y: f32) -> f32 {
+    match kind {
+        TargetKind::Total => (y.exp_m1() * single_scattering_phase(features)).max(0.0),
+        TargetKind::Multiple => (y.exp_m1() / (4.0 * std::f32::consts::PI)).max(0.0),
+    }
+}
+
+/// L_i from the network's un-standardized output (single scattering added back for a
+/// multiple-scattering model): the figure the training report compares.
+#[inline]
+pub fn predicted_l_i(kind: TargetKind, features: &[f32], y: f32) -> f32 {
+    let v = untransform_target(kind, features, y);
+    if kind == TargetKind::Multiple { v + single_scattering(features) } else { v }
+}
+
+/// Everything about a model but its weights.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Sidecar {
+    pub format: String,
+    pub format_version: u32,
+    pub features: FeatureLayout,
+    pub standardization: Standardization,
+    /// Widths of the hidden layers, e.g. [200, 100].
+    pub hidden: Vec<usize>,
+    pub activation: Activation,
+    /// Free-form records of the training run (data, settings, errors, command, time).
+    pub training: serde_json::Value,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error("{path}: {why}")]
+    File { path: PathBuf, why: String },
+    #[error("{path}: the model does not fit this version of Nimbus: {why}")]
+    Layout { path: PathBuf, why: String },
+}
+
+/// A trained global model: layout, standardization and network.
+#[derive(Clone, Debug)]
+pub struct GlobalModel {
+    pub sidecar: Sidecar,
+    pub mlp: Mlp,
+    features: FeatureExtractor,
+    /// What the network predicts (from the sidecar's target transform).
+    target: TargetKind,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+impl GlobalModel {
+    pub fn new(sidecar: Sidecar, mlp: Mlp) -> Self {
+        let features = FeatureExtractor::with_set(sidecar.features.direction_set, sidecar.features.n_dirs)
+            .expect("layout checked");
+        let target = TargetKind::from_transform(&sidecar.standardization.target)
+            .expect("the sidecar's target transform is one this code knows (checked by from_bytes)");
+        GlobalModel { sidecar, mlp, features, target }
+    }
+
+    /// Loads `path` (.safetensors) and its sidecar (same name, .json); checks that the
+    /// sidecar's feature layout is what this code computes and that the weights have
+    /// the shapes the sidecar's architecture says, all finite.
+    pub fn load(path: &Path) -> Result<GlobalModel, ModelError> {
+        let json_path = path.with_extension("json");
+        let text = std::fs::read_to_string(&json_path)
+            .map_err(|e| ModelError::File { path: json_path.clone(), why: e.to_string() })?;
+        let bytes = std::fs::read(path).map_err(|e| ModelError::File { path: path.to_owned(), why: e.to_string() })?;
+        Self::from_bytes(&bytes, &text, path)
+    }
+
+    /// The model shipped in `assets/models/global.*`, compiled into the binary so a
+    /// fresh build predicts without any file. Loaded (and checked) once.
+    pub fn shipped() -> Result<Arc<GlobalModel>, ModelError> {
+        static SHIPPED: OnceLock<Result<Arc<GlobalModel>, String>> = OnceLock::new();
+        SHIPPED
+            .get_or_init(|| {
+                Self::from_bytes(SHIPPED_WEIGHTS, SHIPPED_SIDECAR, Path::new(SHIPPED_PATH))
+                    .map(Arc::new)
+                    .map_err(|e| e.to_string())
+            })
+            .clone()
+            .map_err(|why| ModelError::File { path: SHIPPED_PATH.into(), why })
+    }
+
+    /// A model from the bytes of its weights and the text of its sidecar; `path` (the
+    /// weights file) only names the model in messages.
+    pub fn from_bytes(bytes: &[u8], sidecar_json: &str, path: &Path) -> Result<GlobalModel, ModelError> {
+        let file_err = |p: &Path, why: String| ModelError::File { path: p.to_owned(), why };
+        let json_path = path.with_extension("json");
+        let sidecar: Sidecar = serde_json::from_str(sidecar_json)
+            .map_err(|e| file_err(&json_path, format!("not a Nimbus global-model sidecar: {e}")))?;
+        if sidecar.format != MODEL_FORMAT || sidecar.format_version != MODEL_FORMAT_VERSION {
+            return Err(ModelError::Layout {
+                path: json_path,
+                why: format!(
+                    "format {} v{} is not {MODEL_FORMAT} v{MODEL_FORMAT_VERSION}",
+                    sidecar.format, sidecar.format_version
+                ),
+            });
+        }
+        if let Some(why) = sidecar.features.mismatch() {
+            return Err(ModelError::Layout { path: json_path, why });
+        }
+        let n_f = sidecar.features.names.len();
+        let st = &sidecar.standardization;
+        let kind = TargetKind::from_transform(&st.target);
+        if st.feature_mean.len() != n_f || st.feature_std.len() != n_f || kind.is_none() {
+            return Err(ModelError::Layout {
+                path: json_path,
+                why: format!(
+                    "standardization has {} means / {} deviations for {n_f} features, target {:?} (the code knows {TARGET_TRANSFORM:?} and {TARGET_TRANSFORM_MULTIPLE:?})",
+                    st.feature_mean.len(),
+                    st.feature_std.len(),
+                    st.target
+                ),
+            });
+        }
+        let tensors = candle_core::safetensors::load_buffer(bytes, &candle_core::Device::Cpu)
+            .map_err(|e| file_err(path, format!("not a readable safetensors file: {e}")))?;
+        let mut widths = vec![n_f];
+        widths.extend(&sidecar.hidden);
+        widths.push(1);
+        let mut layers = vec![];
+        for l in 0..widths.len() - 1 {
+            let (i, o) = (widths[l], widths[l + 1]);
+            let get = |name: String, shape: &[usize]| -> Result<Vec<f32>, ModelError> {
+                let t = tensors.get(&name).ok_or_else(|| file_err(path, format!("tensor {name} is missing")))?;
+                if t.dims() != shape {
+                    return Err(file_err(path, format!("tensor {name} has shape {:?}, expected {shape:?}", t.dims())));
+                }
+                let v: Vec<f32> = t
+                    .to_dtype(candle_core::DType::F32)
+                    .and_then(|t| t.flatten_all())
+                    .and_then(|t| t.to_vec1())
+                    .map_err(|e| file_err(path, format!("tensor {name}: {e}")))?;
+                if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+                    return Err(file_err(path, format!("tensor {name} holds a non-finite value at {k}")));
+                }
+                Ok(v)
+            };
+            layers.push((i, o, get(format!("layers.{l}.weight"), &[o, i])?, get(format!("layers.{l}.bias"), &[o])?));
+        }
+        let mlp = Mlp::new(&layers, sidecar.activation);
+        Ok(GlobalModel::new(sidecar, mlp))
+    }
+
+    /// L_i for one raw feature row (standardized here), using `scratch`.
+    #[inline]
+    pub fn predict_features(&self, raw: &[f32], scratch: &mut Scratch) -> f32 {
+        let st = &self.sidecar.standardization;
+        self.mlp.ensure(scratch);
+        let mut x = std::mem::take(&mut scratch.features);
+        for (k, v) in raw.iter().enumerate() {
+            x[k] = (v - st.feature_mean[k]) / st.feature_std[k];
+        }
+        let y = self.mlp.forward_sized(&x, scratch);
+        scratch.features = x;
+        untransform_target(self.target, raw, y * st.target_std + st.target_mean)
+    }
+
+    pub fn feature_extractor(&self) -> &FeatureExtractor {
+        &self.features
+    }
+
+    pub fn target(&self) -> TargetKind {
+        self.target
+    }
+}
+
+impl InScatterPredictor for GlobalModel {
+    /// Features ray marched through the grid (skipping empty space, stopping once the
+    /// transmittance is negligible), then the network; per-thread scratch, no allocation.
+    fn predict(&self, medium: &Medium, sun: &Sun, x: Vec3, omega: Vec3) -> f32 {
+        let mut feat = [0.0f32; 4 + 256];
+        let n = self.features.len();
+        self.features.extract_grid(medium, sun.direction(), x, omega, &mut feat[..n]);
+        let v = SCRATCH.with(|s| self.predict_features(&feat[..n], &mut s.borrow_mut()));
+        if v.is_finite() { v } else { 0.0 }
+    }
+
+    fn predicts_single_scattering(&self) -> bool {
+        self.target == TargetKind::Total
+    }
+
+    fn name(&self) -> &str {
+        "global MLP"
+    }
+}
+
+/// A global model bound to one cloud and one sun: the optical depths of the features
+/// come from a precomputed [`DepthField`] (trilinear lookups) instead of n_D ray
+/// marches per prediction. What the renderer uses; see `depth_field.rs` for the
+/// construction and its accuracy.
+#[derive(Clone, Debug)]
+pub struct BoundGlobalModel {
+    model: Arc<GlobalModel>,
+    field: Arc<DepthField>,
+    frame: LightFrame,
+    /// What the field was built for: another medium or sun falls back to marching.
+    grid: Arc<engine::DensityGrid>,
+    rho: f32,
+    omega_l: Vec3,
+}
+
+impl BoundGlobalModel {
+    /// Builds the depth field of `medium` for `sun` (about a second at 64^3 nodes on two
+    /// cores; `max_nodes` per axis trades accuracy for time and memory).
+    pub fn new(model: Arc<GlobalModel>, medium: &Medium, sun: &Sun, max_nodes: u32) -> Self {
+        let omega_l = sun.direction();
+        let field = DepthField::for_light(medium, model.features.directions(), omega_l, max_nodes);
+        BoundGlobalModel {
+            model,
+            field: Arc::new(field),
+            frame: LightFrame::new(omega_l),
+            grid: medium.grid().clone(),
+            rho: medium.rho(),
+            omega_l,
+        }
+    }
+
+    pub fn model(&self) -> &Arc<GlobalModel> {
+        &self.model
+    }
+
+    pub fn field(&self) -> &DepthField {
+        &self.field
+    }
+
+    /// The raw feature row at `x` for query direction `omega` (written to `out`).
+    #[inline]
+    pub fn features(&self, medium: &Medium, x: Vec3, omega: Vec3, out: &mut [f32]) {
+        FeatureExtractor::write_head(medium.albedo(), medium.phase().mean_cosine(), &self.frame, omega, out);
+        self.field.lookup(x, &mut out[4..]);
+    }
+
+    fn matches(&self, medium: &Medium, sun: &Sun) -> bool {
+        Arc::ptr_eq(medium.grid(), &self.grid) && medium.rho() == self.rho && sun.direction() == self.omega_l
+    }
+}
+
+impl InScatterPredictor for BoundGlobalModel {
+    fn predict(&self, medium: &Medium, sun: &Sun, x: Vec3, omega: Vec3) -> f32 {
+        if !self.matches(medium, sun) {
+            return self.model.predict(medium, sun, x, omega);
+        }
+        let mut feat = [0.0f32; 4 + 256];
+        let n = self.model.features.len();
+        self.features(medium, x, omega, &mut feat[..n]);
+        let v = SCRATCH.with(|s| self.model.predict_features(&feat[..n], &mut s.borrow_mut()));
+        if v.is_finite() { v } else { 0.0 }
+    }
+
+    fn predicts_single_scattering(&self) -> bool {
+        self.model.target == TargetKind::Total
+    }
+
+    fn name(&self) -> &str {
+        "global MLP (depth field)"
+    }
+}

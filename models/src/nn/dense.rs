@@ -1,0 +1,227 @@
+//! Dense layers evaluated in f32 without allocation, shared by both models'
+//! networks: weights stored input-major with the outputs padded to a multiple of 16,
+//! a portable kernel and AVX2 + FMA kernels (one row, or several rows per loaded
+//! weight vector). Both kernels compute each output as the same chain of fused
+//! multiply-adds over the inputs in order, so they give the same bits.
+
+use serde::{Deserialize, Serialize};
+
+/// The activation of the hidden layers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Activation {
+    Relu,
+    Tanh,
+    /// x * sigmoid(x)
+    Silu,
+}
+
+impl Activation {
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "relu" => Some(Activation::Relu),
+            "tanh" => Some(Activation::Tanh),
+            "silu" => Some(Activation::Silu),
+            _ => None,
+        }
+    }
+
+    #[inline(always)]
+    pub(crate) fn apply(self, x: f32) -> f32 {
+        match self {
+            Activation::Relu => x.max(0.0),
+            Activation::Tanh => x.tanh(),
+            Activation::Silu => x / (1.0 + (-x).exp()),
+        }
+    }
+}
+
+/// One dense layer, weights stored input-major ([in][out_padded]) so that a forward
+/// pass is a sequence of axpy's over contiguous output rows, which the compiler turns
+/// into full-width vector FMAs.
+#[derive(Clone, Debug)]
+pub(crate) struct Dense {
+    pub(crate) inputs: usize,
+    pub(crate) outputs: usize,
+    /// Outputs rounded up to a multiple of 16 (padding weights are zero).
+    pub(crate) stride: usize,
+    pub(crate) w: Vec<f32>,
+    pub(crate) b: Vec<f32>,
+}
+
+impl Dense {
+    /// From a row-major [out][in] weight matrix (candle's / PyTorch's layout).
+    pub(crate) fn new(inputs: usize, outputs: usize, w_out_in: &[f32], b: &[f32]) -> Self {
+        let stride = outputs.div_ceil(16) * 16;
+        let mut w = vec![0.0; inputs * stride];
+        for o in 0..outputs {
+            for i in 0..inputs {
+                w[i * stride + o] = w_out_in[o * inputs + i];
+            }
+        }
+        let mut bb = vec![0.0; stride];
+        bb[..outputs].copy_from_slice(b);
+        Dense { inputs, outputs, stride, w, b: bb }
+    }
+}
+
+/// The portable layer kernel: y[..stride] = act(W x + b), padding outputs included.
+#[inline(always)]
+pub(crate) fn layer_forward(layer: &Dense, x: &[f32], y: &mut [f32], act: Option<Activation>) {
+    let s = layer.stride;
+    let y = &mut y[..s];
+    y.copy_from_slice(&layer.b);
+    for (i, &xi) in x[..layer.inputs].iter().enumerate() {
+        let row = &layer.w[i * s..(i + 1) * s];
+        for (yo, wo) in y.chunks_exact_mut(16).zip(row.chunks_exact(16)) {
+            for k in 0..16 {
+                yo[k] = wo[k].mul_add(xi, yo[k]);
+            }
+        }
+    }
+    if let Some(a) = act {
+        for v in y[..layer.outputs].iter_mut() {
+            *v = a.apply(*v);
+        }
+    }
+}
+
+/// AVX2 + FMA kernel: outputs in register blocks of 64 (eight 8-wide accumulators,
+/// then blocks of 16 for the rest of the padded row), inputs streamed through them, so
+/// each weight is loaded once and the outputs stay in registers for the whole layer.
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod avx2 {
+    use super::{Activation, Dense};
+    use std::arch::x86_64::*;
+
+    /// Outputs b .. b + 8 NV of one layer.
+    ///
+    /// # Safety
+    /// The CPU has AVX2 and FMA, b + 8 NV <= layer.stride, x.len() >= layer.inputs,
+    /// y.len() >= layer.stride (and the layer was made by `Dense::new`, so w holds
+    /// inputs * stride values and b holds stride values).
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn block<const NV: usize>(layer: &Dense, b: usize, x: &[f32], y: &mut [f32]) {
+        let s = layer.stride;
+        debug_assert!(b + 8 * NV <= s && x.len() >= layer.inputs && layer.w.len() >= layer.inputs * s && y.len() >= s);
+        // SAFETY: every load reads w[i * s + b .. i * s + b + 8 NV] with i < inputs and
+        // b + 8 NV <= s (so within w, which holds inputs * s values), the bias block
+        // b .. b + 8 NV < s, and the store writes y[b .. b + 8 NV] within y[..s].
+        unsafe {
+            let mut acc = [_mm256_setzero_ps(); NV];
+            for (j, a) in acc.iter_mut().enumerate() {
+                *a = _mm256_loadu_ps(layer.b.as_ptr().add(b + 8 * j));
+            }
+            let w = layer.w.as_ptr();
+            for (i, &xi) in x[..layer.inputs].iter().enumerate() {
+                let xv = _mm256_set1_ps(xi);
+                let row = w.add(i * s + b);
+                for (j, a) in acc.iter_mut().enumerate() {
+                    *a = _mm256_fmadd_ps(_mm256_loadu_ps(row.add(8 * j)), xv, *a);
+                }
+            }
+            for (j, a) in acc.iter().enumerate() {
+                _mm256_storeu_ps(y.as_mut_ptr().add(b + 8 * j), *a);
+            }
+        }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub(crate) fn layer_forward(layer: &Dense, x: &[f32], y: &mut [f32], act: Option<Activation>) {
+        let s = layer.stride;
+        assert!(x.len() >= layer.inputs && y.len() >= s);
+        let mut b = 0;
+        // SAFETY: this function runs only with AVX2 + FMA (its target features), the
+        // assert above bounds x and y, and every block ends at or before s (a multiple
+        // of 16).
+        while b + 64 <= s {
+            unsafe { block::<8>(layer, b, x, y) };
+            b += 64;
+        }
+        while b < s {
+            unsafe { block::<2>(layer, b, x, y) };
+            b += 16;
+        }
+        if let Some(a) = act {
+            for v in y[..layer.outputs].iter_mut() {
+                *v = a.apply(*v);
+            }
+        }
+    }
+
+    /// Outputs b .. b + 16 of one layer for R rows at once: rows r's input is
+    /// xs[r * ws ..], its output ys[r * ws ..]. Each weight vector is loaded once and
+    /// used for all R rows (2 R accumulators), which is what makes a batch cheaper
+    /// per row than single passes: a single pass is bound by streaming the weights.
+    ///
+    /// # Safety
+    /// The CPU has AVX2 and FMA, b + 16 <= layer.stride, and for r < R,
+    /// xs.len() >= r * ws + layer.inputs and ys.len() >= r * ws + layer.stride.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    unsafe fn block_rows<const R: usize>(layer: &Dense, b: usize, xs: &[f32], ws: usize, ys: &mut [f32]) {
+        let s = layer.stride;
+        debug_assert!(b + 16 <= s && xs.len() >= (R - 1) * ws + layer.inputs && ys.len() >= (R - 1) * ws + s);
+        // SAFETY: the weight loads read w[i * s + b .. + 16] with i < inputs and
+        // b + 16 <= s; the input reads xs[r * ws + i] with i < inputs; the stores write
+        // ys[r * ws + b .. + 16] within r * ws + s; all bounded by the caller's contract.
+        unsafe {
+            let bias = [_mm256_loadu_ps(layer.b.as_ptr().add(b)), _mm256_loadu_ps(layer.b.as_ptr().add(b + 8))];
+            let mut acc = [[bias[0], bias[1]]; R];
+            let w = layer.w.as_ptr();
+            let x = xs.as_ptr();
+            for i in 0..layer.inputs {
+                let row = w.add(i * s + b);
+                let (w0, w1) = (_mm256_loadu_ps(row), _mm256_loadu_ps(row.add(8)));
+                for (r, a) in acc.iter_mut().enumerate() {
+                    let xv = _mm256_set1_ps(*x.add(r * ws + i));
+                    a[0] = _mm256_fmadd_ps(w0, xv, a[0]);
+                    a[1] = _mm256_fmadd_ps(w1, xv, a[1]);
+                }
+            }
+            for (r, a) in acc.iter().enumerate() {
+                _mm256_storeu_ps(ys.as_mut_ptr().add(r * ws + b), a[0]);
+                _mm256_storeu_ps(ys.as_mut_ptr().add(r * ws + b + 8), a[1]);
+            }
+        }
+    }
+
+    /// [`layer_forward`] for `rows` rows at once (row r at xs[r * ws ..], its output
+    /// at ys[r * ws ..]), four rows per weight pass.
+    #[target_feature(enable = "avx2,fma")]
+    pub(crate) fn layer_forward_rows(
+        layer: &Dense,
+        xs: &[f32],
+        ys: &mut [f32],
+        rows: usize,
+        ws: usize,
+        act: Option<Activation>,
+    ) {
+        let s = layer.stride;
+        assert!(rows > 0 && ws >= s && ws >= layer.inputs);
+        assert!(xs.len() >= (rows - 1) * ws + layer.inputs && ys.len() >= (rows - 1) * ws + s);
+        let mut b = 0;
+        while b < s {
+            let mut r = 0;
+            // SAFETY: AVX2 + FMA are this function's target features; b + 16 <= s (s
+            // is a multiple of 16); the asserts above bound every row r < rows.
+            while r + 4 <= rows {
+                unsafe { block_rows::<4>(layer, b, &xs[r * ws..], ws, &mut ys[r * ws..]) };
+                r += 4;
+            }
+            while r < rows {
+                unsafe { block_rows::<1>(layer, b, &xs[r * ws..], ws, &mut ys[r * ws..]) };
+                r += 1;
+            }
+            b += 16;
+        }
+        if let Some(a) = act {
+            for r in 0..rows {
+                for v in ys[r * ws..r * ws + layer.outputs].iter_mut() {
+                    *v = a.apply(*v);
+                }
+            }
+        }
+    }
+}

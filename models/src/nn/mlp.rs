@@ -1,0 +1,116 @@
+//! A multilayer perceptron of [`Dense`] layers (the global model's network),
+//! evaluated in f32 without allocation, with AVX2 + FMA when the CPU has them.
+
+#[cfg(target_arch = "x86_64")]
+use super::dense::avx2;
+use super::dense::{Activation, Dense, layer_forward};
+
+/// The MLP evaluated in f32 without allocation.
+#[derive(Clone, Debug)]
+pub struct Mlp {
+    layers: Vec<Dense>,
+    activation: Activation,
+    /// Widest padded layer: the scratch size.
+    width: usize,
+}
+
+/// Per-thread scratch space of the evaluator.
+#[derive(Clone, Debug, Default)]
+pub struct Scratch {
+    a: Vec<f32>,
+    b: Vec<f32>,
+    /// The caller's input row (the global model standardizes its features here).
+    pub(crate) features: Vec<f32>,
+}
+
+/// The forward pass with a given layer kernel.
+#[inline(always)]
+fn forward_with(
+    mlp: &Mlp,
+    x: &[f32],
+    scratch: &mut Scratch,
+    mut layer_fn: impl FnMut(&Dense, &[f32], &mut [f32], Option<Activation>),
+) -> f32 {
+    let (mut cur, mut next) = (std::mem::take(&mut scratch.a), std::mem::take(&mut scratch.b));
+    cur[..x.len()].copy_from_slice(x);
+    let last = mlp.layers.len() - 1;
+    for (l, layer) in mlp.layers.iter().enumerate() {
+        layer_fn(layer, &cur, &mut next, (l < last).then_some(mlp.activation));
+        std::mem::swap(&mut cur, &mut next);
+    }
+    let out = cur[0];
+    scratch.a = cur;
+    scratch.b = next;
+    out
+}
+
+#[inline(always)]
+fn forward_generic(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
+    forward_with(mlp, x, scratch, layer_forward)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn forward_avx2(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
+    // The closure inherits this function's target features, so the kernel call is safe.
+    forward_with(mlp, x, scratch, |l, x, y, a| avx2::layer_forward(l, x, y, a))
+}
+
+impl Mlp {
+    /// Layers as (inputs, outputs, row-major [out][in] weights, bias).
+    pub fn new(layers: &[(usize, usize, Vec<f32>, Vec<f32>)], activation: Activation) -> Self {
+        let layers: Vec<Dense> = layers.iter().map(|(i, o, w, b)| Dense::new(*i, *o, w, b)).collect();
+        let width = layers.iter().map(|l| l.stride.max(l.inputs)).max().unwrap_or(16);
+        Mlp { layers, activation, width }
+    }
+
+    pub fn n_inputs(&self) -> usize {
+        self.layers[0].inputs
+    }
+
+    /// Scratch space for this network (allocate once per thread).
+    pub fn scratch(&self) -> Scratch {
+        Scratch { a: vec![0.0; self.width], b: vec![0.0; self.width], features: vec![0.0; self.n_inputs()] }
+    }
+
+    /// Sizes `scratch` for this network if it is too small.
+    pub(crate) fn ensure(&self, scratch: &mut Scratch) {
+        if scratch.a.len() < self.width || scratch.features.len() < self.n_inputs() {
+            *scratch = self.scratch();
+        }
+    }
+
+    /// The network's output for one (standardized) input; allocation free once
+    /// `scratch` has been sized by [`Mlp::scratch`].
+    #[inline]
+    pub fn forward(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
+        self.ensure(scratch);
+        self.forward_sized(x, scratch)
+    }
+
+    /// [`Mlp::forward`] with `scratch` already sized by [`Mlp::ensure`].
+    #[inline]
+    pub(crate) fn forward_sized(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
+        debug_assert_eq!(x.len(), self.n_inputs());
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU supports the features the function was compiled for.
+            return unsafe { forward_avx2(self, x, scratch) };
+        }
+        forward_generic(self, x, scratch)
+    }
+
+    /// The portable forward pass (what CPUs without AVX2 + FMA run), for tests.
+    pub fn forward_portable(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
+        self.ensure(scratch);
+        forward_generic(self, x, scratch)
+    }
+
+    /// Batched entry point: `xs` holds rows of n_inputs values, one output per row.
+    pub fn forward_batch(&self, xs: &[f32], out: &mut [f32], scratch: &mut Scratch) {
+        let n = self.n_inputs();
+        for (row, o) in xs.chunks_exact(n).zip(out.iter_mut()) {
+            *o = self.forward(row, scratch);
+        }
+    }
+}

@@ -1,0 +1,12 @@
+//! What both models' networks share: dense layers evaluated without allocation
+//! (portable and AVX2 + FMA kernels), the MLP evaluator, the optimizers and the
+//! training schedule check, and a vectorized ln(1 + x).
+
+pub mod dense;
+pub mod fastmath;
+pub mod mlp;
+pub mod optim;
+
+pub use dense::Activation;
+pub use mlp::{Mlp, Scratch};
+pub use optim::Optimizer;
