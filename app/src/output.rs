@@ -210,8 +210,8 @@ mod tests {
 
     #[test]
     fn atomic_write_leaves_no_temporary_on_failure() {
-        let dir = std::env::temp_dir().join(format!("nimbus-atomic-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().to_path_buf();
         let target = dir.join("x.bin");
         std::fs::write(&target, b"old").unwrap();
         let r = write_atomically(&target, |tmp| {
@@ -223,6 +223,5 @@ mod tests {
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1, "temporary removed");
         write_bytes_atomically(&target, b"new").unwrap();
         assert_eq!(std::fs::read(&target).unwrap(), b"new");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -862,8 +862,8 @@ mod tests {
 
     #[test]
     fn missing_or_corrupt_model_falls_back_to_path_tracing() {
-        let dir = std::env::temp_dir().join(format!("nimbus-scene-model-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().to_path_buf();
         std::fs::write(dir.join("broken.safetensors"), b"not a model").unwrap();
         std::fs::copy(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/global.json"), dir.join("broken.json"))
             .unwrap();
@@ -877,6 +877,5 @@ mod tests {
             assert!(w.contains(why) && w.contains("path tracing"), "{w}");
             assert_eq!(setup.integrator.settings().mode, Mode::Reference);
         }
-        std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -185,8 +185,8 @@ fn dragging_the_viewport_moves_the_sun_or_the_camera() {
 /// model is missing renders by path tracing with a visible message saying so.
 #[test]
 fn recent_files_and_a_missing_model() {
-    let dir = std::env::temp_dir().join(format!("nimbus-gui-recent-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().to_path_buf();
     let scene = dir.join("s.toml");
     std::fs::write(
         &scene,
@@ -215,7 +215,6 @@ fn recent_files_and_a_missing_model() {
     let (text, is_error) = h.state().message().cloned().expect("a message");
     assert!(is_error && text.contains("broken.vdb"), "{text}");
     assert_eq!(h.state().recent().len(), 1, "a file that failed to open is not remembered");
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 /// The window's layout, rendered headless by wgpu on Mesa's software Vulkan and
@@ -240,8 +239,8 @@ fn window_snapshot() {
 #[test]
 fn export_writes_files() {
     use app::gui::Target;
-    let dir = std::env::temp_dir().join(format!("nimbus-gui-export-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().to_path_buf();
     let (mut h, s) = small_scene(24, 16, 24);
     h.state_mut().set_scene(s);
     step_until(&mut h, "the worker did not render", |a| a.rendered().is_some_and(|r| r.1 >= 2));
@@ -267,5 +266,4 @@ fn export_writes_files() {
     h.run_steps(1);
     let (text, is_error) = h.state().message().cloned().unwrap();
     assert!(is_error && text.contains("s.toml"), "writing under a file must fail visibly: {text}");
-    std::fs::remove_dir_all(&dir).ok();
 }

@@ -36,8 +36,8 @@ fn window_opens_and_shows_a_cloud() {
             .unwrap(),
     );
     std::thread::sleep(Duration::from_secs(2));
-    let dir = std::env::temp_dir().join(format!("nimbus-smoke-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().to_path_buf();
     let mut app = Kill(
         Command::new(env!("CARGO_BIN_EXE_nimbus"))
             .env("DISPLAY", &display)
@@ -79,5 +79,4 @@ fn window_opens_and_shows_a_cloud() {
         std::thread::sleep(Duration::from_secs(2));
     }
     drop(app);
-    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -5,7 +5,7 @@
 //! python3-openvdb; elsewhere the test is skipped with a message if it is missing.
 
 use serde_json::Value;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 const FIXTURES: [&str; 5] = ["sphere_dense", "cloud_sparse", "transformed_zip", "multi_grid", "half_float"];
@@ -41,8 +41,8 @@ fn fixtures_are_what_the_script_makes() {
         return;
     }
     let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/vdb");
-    let out: PathBuf = std::env::temp_dir().join(format!("nimbus-vdb-fixtures-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().to_path_buf();
     let run = Command::new(python).arg(committed.join("make_fixtures.py")).arg("--out").arg(&out).output().unwrap();
     assert!(
         run.status.success(),
@@ -71,5 +71,4 @@ fn fixtures_are_what_the_script_makes() {
             b.len()
         );
     }
-    std::fs::remove_dir_all(&out).unwrap();
 }

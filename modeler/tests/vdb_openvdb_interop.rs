@@ -39,8 +39,8 @@ fn openvdb_reads_our_files() {
         eprintln!("skipping: /usr/bin/python3 cannot import pyopenvdb (apt-get install python3-openvdb)");
         return;
     }
-    let dir = std::env::temp_dir().join(format!("nimbus-vdb-interop-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().to_path_buf();
     for (preset, res) in [("scene-b", 40u32), ("scene-c", 33)] {
         let grid = modeler::build_grid(&modeler::preset(preset).unwrap(), res).unwrap();
         let path = dir.join(format!("{preset}.vdb"));
@@ -90,5 +90,4 @@ fn openvdb_reads_our_files() {
             assert_eq!(r["values"][i].as_f64().unwrap() as f32, *v, "{preset}: value at {p:?}");
         }
     }
-    std::fs::remove_dir_all(&dir).unwrap();
 }

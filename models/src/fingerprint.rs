@@ -35,8 +35,8 @@ mod tests {
         assert_eq!(fingerprint(&[b"abc", b"def"]), fingerprint(&[b"abc", b"def"]));
         assert_ne!(fingerprint(&[b"abc", b"def"]), fingerprint(&[b"abc", b"deg"]));
         assert_ne!(fingerprint(&[b"abc", b"def"]), fingerprint(&[b"abcd", b"ef"]));
-        let dir = std::env::temp_dir().join(format!("nimbus-fingerprint-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().to_path_buf();
         let w = dir.join("m.safetensors");
         std::fs::write(&w, b"weights").unwrap();
         assert!(model_file_fingerprint(&w).unwrap_err().to_string().contains("m.json"));
@@ -45,6 +45,5 @@ mod tests {
         std::fs::write(dir.join("m.json"), b"{ }").unwrap();
         assert_ne!(a, model_file_fingerprint(&w).unwrap());
         assert_eq!(a, fingerprint(&[b"weights", b"{}"]));
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -40,10 +40,9 @@ fn spec() -> P2pSpec {
     }
 }
 
-fn dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("nimbus-p2pdata-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
+/// A fresh directory `name` below `root`.
+fn dir(root: &tempfile::TempDir, name: &str) -> PathBuf {
+    root.path().join(name)
 }
 
 fn bytes(d: &Path) -> (Vec<u8>, Vec<u8>) {
@@ -59,6 +58,8 @@ fn run(s: &P2pSpec, shard: Shard, d: &Path, threads: usize, cancel: &AtomicBool)
 fn deterministic_resumable_and_shardable() {
     let s = spec();
     let never = AtomicBool::new(false);
+    let root = tempfile::tempdir().unwrap();
+    let dir = |name| dir(&root, name);
     let (a, b) = (dir("a"), dir("b"));
     run(&s, Shard::ALL, &a, 1, &never).unwrap();
     run(&s, Shard::ALL, &b, 2, &never).unwrap();
@@ -193,7 +194,4 @@ fn deterministic_resumable_and_shardable() {
     std::fs::write(&weights, b"junk").unwrap();
     let e = models::p2p::model::P2pModel::load(&weights).err().unwrap();
     assert!(e.contains("m.json") || e.contains("m.safetensors"), "{e}");
-    for d in [a, b, c, s0, s1, m] {
-        std::fs::remove_dir_all(d).ok();
-    }
 }

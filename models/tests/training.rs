@@ -12,14 +12,11 @@ use models::global::model::{
 use models::global::train::{EpochRecord, Network, Quiet, TrainConfig, TrainData, TrainObserver, train};
 use models::nn::Activation;
 use models::nn::Optimizer;
-use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 
-fn temp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("nimbus-train-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+/// A fresh directory, removed with the returned guard.
+fn temp(_name: &str) -> tempfile::TempDir {
+    tempfile::tempdir().unwrap()
 }
 
 /// A synthetic data set whose transformed target is a known smooth function of the
@@ -52,7 +49,8 @@ fn training_recovers_a_known_smooth_function() {
     let (data, _) = smooth_data(6000, 1);
     let cfg =
         TrainConfig { hidden: vec![32, 16], epochs: 40, batch: 100, lr: 3e-3, lr_decay: 0.95, ..Default::default() };
-    let dir = temp("smooth");
+    let guard = temp("smooth");
+    let dir = guard.path().to_path_buf();
     let (_, report) = train(&data, &cfg, &dir.join("m"), false, "test", "test", &Quiet).unwrap();
     // The standardized target has variance 1; a recovered function leaves a few per cent.
     assert!(report.test_mse < 0.02 * report.test_target_variance, "{report:?}");
@@ -61,7 +59,6 @@ fn training_recovers_a_known_smooth_function() {
     let h = &report.history;
     assert!(h.last().unwrap().test_mse < 0.2 * h[0].test_mse, "the loss falls");
     assert!(dir.join("m.loss.csv").exists() && dir.join("m.loss.png").exists());
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]
@@ -76,17 +73,18 @@ fn sgd_with_momentum_also_learns() {
         activation: Activation::Tanh,
         ..Default::default()
     };
-    let dir = temp("sgd");
+    let guard = temp("sgd");
+    let dir = guard.path().to_path_buf();
     let (_, report) = train(&data, &cfg, &dir.join("m"), false, "test", "test", &Quiet).unwrap();
     assert!(report.test_mse < 0.25 * report.test_target_variance, "{report:?}");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// A tiny ground-truth data set made by the generator itself trains to a test error
 /// well below the variance of its targets.
 #[test]
 fn a_generated_data_set_trains() {
-    let dir = temp("gen");
+    let guard = temp("gen");
+    let dir = guard.path().to_path_buf();
     let spec = GlobalSpec {
         points: 1500,
         sigma: [0.5, 8.0],
@@ -113,7 +111,6 @@ fn a_generated_data_set_trains() {
         .unwrap();
     let e = TrainData::load(&[dir.join("data"), dir.join("data4")]).err().unwrap().to_string();
     assert!(e.contains("4 tetrahedron directions") && e.contains("16 tetrahedron"), "{e}");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]
@@ -153,7 +150,8 @@ fn fast_evaluator_matches_candle_and_files_round_trip() {
 fn save_load_predicts_identically_and_bad_files_are_refused() {
     let (data, _) = smooth_data(800, 3);
     let cfg = TrainConfig { hidden: vec![16, 8], epochs: 2, ..Default::default() };
-    let dir = temp("files");
+    let guard = temp("files");
+    let dir = guard.path().to_path_buf();
     let out = dir.join("m");
     let (model, _) = train(&data, &cfg, &out, false, "test", "test", &Quiet).unwrap();
     let loaded = GlobalModel::load(&dir.join("m.safetensors")).unwrap();
@@ -186,7 +184,6 @@ fn save_load_predicts_identically_and_bad_files_are_refused() {
     assert!(e.contains("shape"), "{e}");
     let e = load_err(&weights, "{ not json");
     assert!(e.contains("bad.json"), "{e}");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 struct StopAfter(usize, std::sync::atomic::AtomicUsize);
@@ -203,7 +200,8 @@ impl TrainObserver for StopAfter {
 fn an_interrupted_training_resumes_to_the_same_weights() {
     let (data, _) = smooth_data(1000, 4);
     let cfg = TrainConfig { hidden: vec![16, 8], epochs: 4, batch: 100, ..Default::default() };
-    let dir = temp("resume");
+    let guard = temp("resume");
+    let dir = guard.path().to_path_buf();
     let (full, _) = train(&data, &cfg, &dir.join("a"), false, "test", "test", &Quiet).unwrap();
     let stop = StopAfter(2, Default::default());
     let e = train(&data, &cfg, &dir.join("b"), false, "test", "test", &stop).err().unwrap();
@@ -215,7 +213,6 @@ fn an_interrupted_training_resumes_to_the_same_weights() {
         let (a, b) = (full.predict_features(row, &mut s1), resumed.predict_features(row, &mut s2));
         assert!((a - b).abs() <= 1e-5 * a.abs().max(1e-3), "{a} vs {b}");
     }
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// The multiple-scattering target: a data set whose L_i is exact single scattering
@@ -244,12 +241,12 @@ fn multiple_scattering_target_trains_and_round_trips() {
         target: TargetKind::Multiple,
         ..Default::default()
     };
-    let dir = temp("multiple");
+    let guard = temp("multiple");
+    let dir = guard.path().to_path_buf();
     let (_, report) = train(&data, &cfg, &dir.join("m"), false, "test", "test", &Quiet).unwrap();
     assert!(report.test_mse < 0.02 * report.test_target_variance, "{report:?}");
     assert!(report.rel_error_median < 0.05, "{report:?}");
     let model = GlobalModel::load(&dir.join("m.safetensors")).unwrap();
     assert_eq!(model.target(), TargetKind::Multiple);
     assert!(!model.predicts_single_scattering());
-    std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -4,13 +4,11 @@
 use app::cli::{Cli, run};
 use app::output::read_exr;
 use clap::Parser;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("nimbus-cli-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+/// A fresh directory, removed with the returned guard.
+fn temp_dir(_name: &str) -> tempfile::TempDir {
+    tempfile::tempdir().unwrap()
 }
 
 fn nimbus(args: &[&str]) -> anyhow::Result<()> {
@@ -37,7 +35,8 @@ height = 16
 
 #[test]
 fn render_writes_layered_exr_and_png() {
-    let dir = temp_dir("render");
+    let guard = temp_dir("render");
+    let dir = guard.path().to_path_buf();
     let scene = dir.join("scene.toml");
     std::fs::write(&scene, SCENE).unwrap();
     let (exr, png) = (dir.join("out.exr"), dir.join("out.png"));
@@ -76,12 +75,12 @@ fn render_writes_layered_exr_and_png() {
         }
         Err(_) => assert!(std::env::var_os("CI").is_none(), "CI must install exrheader (Debian package openexr)"),
     }
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]
 fn bad_input_gives_clear_messages() {
-    let dir = temp_dir("bad");
+    let guard = temp_dir("bad");
+    let dir = guard.path().to_path_buf();
     let out = dir.join("x.exr");
     let missing = dir.join("nope.toml");
     let e = nimbus(&["render", s(&missing), "--out", s(&out)]).unwrap_err();
@@ -124,7 +123,6 @@ fn bad_input_gives_clear_messages() {
     std::fs::write(&garbage, [0xffu8, 0xfe, 0x00, 0x12]).unwrap();
     assert!(nimbus(&["render", s(&garbage), "--out", s(&out)]).is_err());
     assert!(!out.exists(), "nothing written on error");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 fn s(p: &Path) -> &str {
@@ -134,7 +132,8 @@ fn s(p: &Path) -> &str {
 /// A scene can take its cloud from a VDB file next to it; `nimbus model` writes one.
 #[test]
 fn vdb_cloud_round_trip_through_the_cli() {
-    let dir = temp_dir("vdb");
+    let guard = temp_dir("vdb");
+    let dir = guard.path().to_path_buf();
     let vdb = dir.join("cloud.vdb");
     nimbus(&["model", "scene-a", "--res", "24", "--out", s(&vdb)]).unwrap();
     let scene = dir.join("scene.toml");
@@ -158,14 +157,14 @@ fn vdb_cloud_round_trip_through_the_cli() {
     assert!(e.contains("c.obj") && e.contains(".vdb"), "{e}");
     let e = format!("{:#}", nimbus(&["model", "scene-q", "--out", s(&vdb)]).unwrap_err());
     assert!(e.contains("scene-q") && e.contains("scene-a"), "{e}");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// `nimbus bench memory` samples resident memory while the window's worker
 /// accumulates, and writes its table; nonsense durations are refused.
 #[test]
 fn memory_bench_writes_its_samples() {
-    let dir = temp_dir("memory");
+    let guard = temp_dir("memory");
+    let dir = guard.path().to_path_buf();
     nimbus(&["bench", "memory", "--seconds", "2", "--interval", "0.5", "--size", "16", "--out", s(&dir)]).unwrap();
     let csv = std::fs::read_to_string(dir.join("memory.csv")).unwrap();
     let rows: Vec<Vec<f64>> = csv.lines().skip(1).map(|l| l.split(',').map(|v| v.parse().unwrap()).collect()).collect();
@@ -175,5 +174,4 @@ fn memory_bench_writes_its_samples() {
     assert!(dir.join("memory.png").exists());
     let e = format!("{:#}", nimbus(&["bench", "memory", "--seconds", "0"]).unwrap_err());
     assert!(e.contains("positive"), "{e}");
-    std::fs::remove_dir_all(&dir).ok();
 }

@@ -4,12 +4,13 @@
 //! lower TTUV than path tracing, path tracing reaches a preview and the prediction's
 //! RMSE floor falls with k, and a rerun resumes from the cache.
 
+use app::cli::common::RunArgs;
 use app::lab::eval::global::{EvalArgs, eval};
 
 #[test]
 fn small_evaluation_runs_end_to_end() {
-    let out = std::env::temp_dir().join(format!("nimbus-eval-test-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().to_path_buf();
     let args = EvalArgs {
         scenes: vec!["A".into()],
         configs: vec!["toplit".into()],
@@ -28,8 +29,7 @@ fn small_evaluation_runs_end_to_end() {
         // 1,024 spp, toplit, g = 0.85).
         preview_spp: Some(32_768),
         out: out.clone(),
-        threads: None,
-        quiet: true,
+        run: RunArgs { threads: None, quiet: true },
     };
     let r = eval(&args).unwrap();
     assert_eq!(r.len(), 2);
@@ -75,5 +75,4 @@ fn small_evaluation_runs_end_to_end() {
     let again = eval(&args).unwrap();
     let same = |a: f64, b: f64| (a - b).abs() <= 1e-12 * b.abs();
     assert!(same(again[0].ttuv_pred, k1.ttuv_pred) && same(again[1].bias, k4.bias), "{again:?}");
-    std::fs::remove_dir_all(&out).ok();
 }

@@ -3,6 +3,7 @@
 //! are written, the prediction lands near BDPT's high orders, with light subpath
 //! candidates too, a rerun resumes from the cache, and a missing model is named.
 
+use app::cli::common::{BdptPredictionArgs, RunArgs};
 use app::lab::eval::p2p::{EvalP2pArgs, eval_p2p};
 use std::path::PathBuf;
 
@@ -18,24 +19,21 @@ fn args(out: PathBuf) -> EvalP2pArgs {
         spp_ref: 512,
         spp: 256,
         p: 1.0,
-        r: 0.08,
-        candidates: 1,
-        extension_samples: engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
+        bdpt: BdptPredictionArgs { r: Some(0.08), candidates: Some(1), extension_samples: None },
         cloud: "scene-a".into(),
         res: 64,
         model: None,
         multi_model: Some(shipped()),
         also: vec![],
         out,
-        threads: None,
-        quiet: true,
+        run: RunArgs { threads: None, quiet: true },
     }
 }
 
 #[test]
 fn small_p2p_evaluation_runs_end_to_end() {
-    let out = std::env::temp_dir().join(format!("nimbus-eval-p2p-test-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().to_path_buf();
     let a = args(out.clone());
     let cells = eval_p2p(&a).unwrap();
     assert_eq!(cells.len(), 4);
@@ -66,7 +64,7 @@ fn small_p2p_evaluation_runs_end_to_end() {
     // answer within the same tolerance.
     let mut m4 = args(out.clone());
     m4.k = vec![1];
-    m4.candidates = 4;
+    m4.bdpt.candidates = Some(4);
     let resampled = eval_p2p(&m4).unwrap();
     assert_eq!(resampled.len(), 2);
     for c in &resampled {
@@ -91,5 +89,4 @@ fn small_p2p_evaluation_runs_end_to_end() {
     bad.multi_model = Some(out.join("no-such-model.safetensors"));
     let e = format!("{:#}", eval_p2p(&bad).unwrap_err());
     assert!(e.contains("no-such-model"), "{e}");
-    let _ = std::fs::remove_dir_all(&out);
 }

@@ -1,8 +1,11 @@
 //! What the subcommands share: the render threads, progress bars, Ctrl-C handling.
 
 use anyhow::{Context, Result, bail};
+use clap::Args;
 use engine::RenderControl;
+use engine::integrator::bdpt::Prediction;
 use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -61,4 +64,58 @@ pub fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
 /// Nimbus version and the commit it was built from.
 pub fn code_version() -> String {
     format!("nimbus {} ({})", env!("CARGO_PKG_VERSION"), option_env!("NIMBUS_GIT_COMMIT").unwrap_or("unknown commit"))
+}
+
+/// Threads and progress output: the flags every long-running command takes.
+#[derive(Args, Debug, Clone, Default)]
+pub struct RunArgs {
+    /// Worker threads (default: all cores). The result does not depend on it.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Which part of a data set a run makes and where it goes.
+#[derive(Args, Debug, Clone)]
+pub struct DatagenRunArgs {
+    /// Make only part i of N (0-based), e.g. --shard 3/16; join the parts with
+    /// `nimbus datagen merge`.
+    #[arg(long, default_value = "0/1")]
+    pub shard: String,
+    /// Output directory (created; one made with the same settings is resumed).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+/// The settings of BDPT's prediction mode; unset ones keep the scene's (or the
+/// defaults).
+#[derive(Args, Debug, Clone, Default)]
+pub struct BdptPredictionArgs {
+    /// Distance threshold r: end vertices closer than r are extended by the
+    /// point-to-point estimator, not predicted (default 0.04; the thesis's 0.08).
+    #[arg(long)]
+    pub r: Option<f32>,
+    /// Light subpaths offered to each camera end vertex, one chosen by resampling
+    /// (default 256, picked from the pass's pool; 1 is the thesis's pairing).
+    #[arg(long)]
+    pub candidates: Option<u32>,
+    /// Point-to-point samples for each pair of end vertices closer than r (default 8).
+    #[arg(long)]
+    pub extension_samples: Option<u32>,
+}
+
+impl BdptPredictionArgs {
+    pub fn r(&self) -> f32 {
+        self.r.unwrap_or(Prediction::DEFAULT_R)
+    }
+    pub fn candidates(&self) -> u32 {
+        self.candidates.unwrap_or(Prediction::DEFAULT_CANDIDATES)
+    }
+    pub fn extension_samples(&self) -> u32 {
+        self.extension_samples.unwrap_or(Prediction::DEFAULT_EXTENSION_SAMPLES)
+    }
 }

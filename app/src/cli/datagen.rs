@@ -1,7 +1,7 @@
 //! `nimbus datagen global|p2p|merge`: training data for the learned models, with
 //! progress, Ctrl-C (finished chunks are kept) and resume, by shards.
 
-use super::common::{cancel_on_ctrl_c, code_version, init_threads, progress_bar};
+use super::common::{DatagenRunArgs, cancel_on_ctrl_c, code_version, init_threads, progress_bar};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use models::dataset::{Counts, DataSpec, Shard, parse_range};
@@ -69,16 +69,8 @@ pub struct GlobalArgs {
     /// of a ray entering the shape, looking back along it); the rest uniform.
     #[arg(long, default_value_t = 0.0)]
     pub first_collision: f32,
-    /// Make only part i of N (0-based), e.g. --shard 3/16; join with `nimbus datagen merge`.
-    #[arg(long, default_value = "0/1")]
-    pub shard: String,
-    #[arg(long)]
-    pub threads: Option<usize>,
-    /// Output directory (created; an existing one with the same settings is resumed).
-    #[arg(long)]
-    pub out: PathBuf,
-    #[arg(long)]
-    pub quiet: bool,
+    #[command(flatten)]
+    pub data: DatagenRunArgs,
 }
 
 #[derive(Args, Debug)]
@@ -128,12 +120,10 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
     match cmd {
         DatagenCommand::Global(args) => {
             let spec = args.spec()?;
-            let shard = Shard::parse(&args.shard)?;
-            let threads = init_threads(args.threads)?;
+            let run = Run::start(&args.data)?;
             let what = format!("data set: {} points", spec.points);
-            let run = Run { owned: spec.shard_points(shard), shard, threads, out: &args.out, quiet: args.quiet };
-            run.go(&what, |progress, cancel| {
-                let m = datagen::generate(&spec, shard, &args.out, &code_version(), progress, cancel)?;
+            run.go(&what, spec.shard_points(run.shard), |progress, cancel| {
+                let m = datagen::generate(&spec, run.shard, &args.data.out, &code_version(), progress, cancel)?;
                 Ok((m.complete, m.counts))
             })
         }
@@ -155,42 +145,46 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
 /// One data-generation run: what it announces, its progress bar, Ctrl-C, and its
 /// closing line (both generators).
 struct Run<'a> {
-    owned: u64,
+    args: &'a DatagenRunArgs,
     shard: Shard,
     threads: usize,
-    out: &'a std::path::Path,
-    quiet: bool,
 }
 
-impl Run<'_> {
-    /// Runs `generate` (given the progress callback and the cancel flag; it returns
-    /// whether the data set is complete and the manifest's counts).
+impl<'a> Run<'a> {
+    /// Parses the shard and starts the threads (before anything else runs on them).
+    fn start(args: &'a DatagenRunArgs) -> Result<Self> {
+        let shard = Shard::parse(&args.shard)?;
+        Ok(Run { args, shard, threads: init_threads(args.run.threads)? })
+    }
+
+    /// Runs `generate` for the `owned` points of this shard (given the progress
+    /// callback and the cancel flag; it returns whether the data set is complete and
+    /// the manifest's counts).
     fn go(
         &self,
         what: &str,
+        owned: u64,
         generate: impl FnOnce(&(dyn Fn(u64) + Sync), &std::sync::atomic::AtomicBool) -> Result<(bool, Counts)>,
     ) -> Result<()> {
         eprintln!(
-            "{what} ({} points in shard {}/{}), {} threads, into {}",
-            self.owned,
+            "{what} ({owned} points in shard {}/{}), {} threads, into {}",
             self.shard.index,
             self.shard.count,
             self.threads,
-            self.out.display()
+            self.args.out.display()
         );
-        let bar = progress_bar(self.owned, "points", self.quiet);
+        let bar = progress_bar(owned, "points", self.args.run.quiet);
         let cancel = cancel_on_ctrl_c();
         let started = std::time::Instant::now();
         let (complete, counts) = generate(&|n| bar.set_position(n), &cancel)?;
         bar.finish_and_clear();
         println!(
-            "{} {} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
+            "{} {owned} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
             if complete { "complete:" } else { "shard done:" },
-            self.owned,
             started.elapsed().as_secs_f64(),
             counts.seconds,
             counts.path_samples,
-            self.out.display()
+            self.args.out.display()
         );
         Ok(())
     }
@@ -234,13 +228,13 @@ fn datagen_p2p(args: P2pArgs) -> Result<()> {
         chunk_size: args.chunk_size,
     };
     spec.validate()?;
+    // The threads first: building the cloud already runs on them.
+    let run = Run::start(&args.data)?;
     let grid = Arc::new(cloud_grid(&args.cloud, args.resolution)?);
-    let shard = Shard::parse(&args.shard)?;
-    let threads = init_threads(args.threads)?;
     let what = format!("point-to-point data set: {} points x {} rotations", spec.points, spec.rotations);
-    let run = Run { owned: spec.shard_points(shard), shard, threads, out: &args.out, quiet: args.quiet };
-    run.go(&what, |progress, cancel| {
-        let m = models::p2p::datagen::generate(&spec, grid, shard, &args.out, &code_version(), progress, cancel)?;
+    run.go(&what, spec.shard_points(run.shard), |progress, cancel| {
+        let m =
+            models::p2p::datagen::generate(&spec, grid, run.shard, &args.data.out, &code_version(), progress, cancel)?;
         Ok((m.complete, m.counts))
     })
 }
@@ -281,13 +275,6 @@ pub struct P2pArgs {
     pub seed: u64,
     #[arg(long, default_value_t = 20)]
     pub chunk_size: u64,
-    /// This run's part, i/N (chunks c with c mod N == i).
-    #[arg(long, default_value = "0/1")]
-    pub shard: String,
-    #[arg(long)]
-    pub threads: Option<usize>,
-    #[arg(long)]
-    pub out: PathBuf,
-    #[arg(long)]
-    pub quiet: bool,
+    #[command(flatten)]
+    pub data: DatagenRunArgs,
 }

@@ -2,7 +2,7 @@
 //! variance) and optionally a PNG, with the scene's settings overridden by flags;
 //! one JSON line of figures at the end.
 
-use super::common::{init_threads, progress_bar, stop_on_ctrl_c};
+use super::common::{BdptPredictionArgs, RunArgs, init_threads, progress_bar, stop_on_ctrl_c};
 use crate::output::{self, ToneMap};
 use crate::progressive::render_spp;
 use crate::scene::SceneFile;
@@ -40,12 +40,8 @@ pub struct RenderArgs {
     /// Tone curve for the PNG: filmic or clamp.
     #[arg(long, default_value = "filmic")]
     pub tonemap: String,
-    /// Worker threads (default: all cores). The image does not depend on it.
-    #[arg(long)]
-    pub threads: Option<usize>,
-    /// No progress bar.
-    #[arg(long)]
-    pub quiet: bool,
+    #[command(flatten)]
+    pub run: RunArgs,
     /// Prediction mode at bounce K: vertices 1 .. K-1 path traced, the learned model
     /// predicts the rest at vertex K (overrides the scene's render.mode and k). With
     /// --integrator bdpt: K segments on each subpath, orders 1 .. 2K by BDPT and the
@@ -72,17 +68,8 @@ pub struct RenderArgs {
     /// .json); default: the shipped single-cloud model.
     #[arg(long)]
     pub p2p_model: Option<PathBuf>,
-    /// Distance threshold r of BDPT prediction (default 0.04; the thesis's 0.08).
-    #[arg(long)]
-    pub r: Option<f32>,
-    /// Light subpaths offered to each camera end vertex in BDPT prediction, one
-    /// chosen by resampling (default 256, picked from the pass's pool; 1 is the thesis's pairing).
-    #[arg(long)]
-    pub candidates: Option<u32>,
-    /// Point-to-point samples for each pair of end vertices closer than r in BDPT
-    /// prediction (default 8).
-    #[arg(long)]
-    pub extension_samples: Option<u32>,
+    #[command(flatten)]
+    pub bdpt: BdptPredictionArgs,
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32)> {
@@ -92,7 +79,7 @@ fn parse_size(s: &str) -> Result<(u32, u32)> {
 
 /// `nimbus render`: renders a scene file to EXR (and PNG), prints a JSON summary.
 pub fn render(args: RenderArgs) -> Result<()> {
-    let threads = init_threads(args.threads)?;
+    let threads = init_threads(args.run.threads)?;
     let tone = ToneMap::from_name(&args.tonemap)
         .with_context(|| format!("--tonemap {}: choose filmic or clamp", args.tonemap))?;
     if args.spp == 0 {
@@ -122,13 +109,13 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if let Some(i) = &args.integrator {
         file.render.integrator = i.clone();
     }
-    if let Some(r) = args.r {
+    if let Some(r) = args.bdpt.r {
         file.render.r = r;
     }
-    if let Some(m) = args.candidates {
+    if let Some(m) = args.bdpt.candidates {
         file.render.candidates = m;
     }
-    if let Some(n) = args.extension_samples {
+    if let Some(n) = args.bdpt.extension_samples {
         file.render.extension_samples = n;
     }
     if let Some(m) = &args.model {
@@ -172,7 +159,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
             None => format!("predict (k {}, p {p})", integrator.settings().k),
         },
     };
-    let bar = progress_bar(args.spp as u64, "spp", args.quiet);
+    let bar = progress_bar(args.spp as u64, "spp", args.run.quiet);
     let outcome = render_spp(scene.clone(), integrator, args.spp, &control, |done| bar.set_position(done as u64))?;
     bar.finish_and_clear();
     let film = &outcome.film;

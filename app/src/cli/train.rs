@@ -1,7 +1,7 @@
 //! `nimbus train global|p2p`: training with candle, a progress bar, Ctrl-C after the
 //! current epoch, checkpoints and `--resume`.
 
-use super::common::{code_version, init_threads, progress_bar};
+use super::common::{RunArgs, code_version, init_threads, progress_bar};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use indicatif::ProgressBar;
@@ -53,11 +53,11 @@ pub struct TrainP2pArgs {
     pub lr_decay: f64,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    #[arg(long)]
-    pub threads: Option<usize>,
     /// Go on from OUT.checkpoint (same settings and data).
     #[arg(long)]
     pub resume: bool,
+    #[command(flatten)]
+    pub run: RunArgs,
 }
 
 fn train_p2p(args: TrainP2pArgs) -> Result<()> {
@@ -79,9 +79,9 @@ fn train_p2p(args: TrainP2pArgs) -> Result<()> {
         ..Default::default()
     };
     cfg.validate().map_err(anyhow::Error::msg)?;
-    init_threads(args.threads)?;
+    init_threads(args.run.threads)?;
     let t = std::time::Instant::now();
-    let bar = progress_bar(args.epochs as u64, "epochs", false);
+    let bar = progress_bar(args.epochs as u64, "epochs", args.run.quiet);
     let cancel = Arc::new(AtomicBool::new(false));
     let flag = cancel.clone();
     let _ = ctrlc::set_handler(move || {
@@ -147,10 +147,8 @@ pub struct TrainGlobalArgs {
     /// Continue from PREFIX.checkpoint/ (same settings and data).
     #[arg(long)]
     pub resume: bool,
-    #[arg(long)]
-    pub threads: Option<usize>,
-    #[arg(long)]
-    pub quiet: bool,
+    #[command(flatten)]
+    pub run: RunArgs,
 }
 
 impl TrainGlobalArgs {
@@ -212,7 +210,7 @@ pub fn train(cmd: TrainCommand) -> Result<()> {
         TrainCommand::P2p(args) => return train_p2p(args),
     };
     let cfg = args.config()?;
-    let threads = init_threads(args.threads)?;
+    let threads = init_threads(args.run.threads)?;
     let t = std::time::Instant::now();
     let data = TrainData::load(&args.data)?;
     eprintln!(
@@ -222,7 +220,7 @@ pub fn train(cmd: TrainCommand) -> Result<()> {
         args.data.len(),
         t.elapsed().as_secs_f64()
     );
-    let bar = progress_bar(1, "batches", args.quiet);
+    let bar = progress_bar(1, "batches", args.run.quiet);
     let cancel = Arc::new(AtomicBool::new(false));
     let c = cancel.clone();
     let _ = ctrlc::set_handler(move || {

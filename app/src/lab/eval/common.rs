@@ -123,3 +123,37 @@ impl TileSheet {
         Ok(())
     }
 }
+
+/// A CSV table declared column by column, so that each header stands beside the value
+/// it names.
+pub(crate) struct Csv<'a, T> {
+    columns: Vec<(&'static str, Box<dyn Fn(&T) -> String + 'a>)>,
+}
+
+impl<'a, T> Csv<'a, T> {
+    pub(crate) fn new() -> Self {
+        Csv { columns: Vec::new() }
+    }
+
+    /// Adds the column `name`, whose cell in a row is `cell(row)`.
+    pub(crate) fn col(mut self, name: &'static str, cell: impl Fn(&T) -> String + 'a) -> Self {
+        self.columns.push((name, Box::new(cell)));
+        self
+    }
+
+    /// The header line and one line per row.
+    pub(crate) fn render(&self, rows: &[T]) -> String {
+        let mut out = self.columns.iter().map(|(name, _)| *name).collect::<Vec<_>>().join(",");
+        out.push('\n');
+        for row in rows {
+            out += &self.columns.iter().map(|(_, cell)| cell(row)).collect::<Vec<_>>().join(",");
+            out.push('\n');
+        }
+        out
+    }
+}
+
+/// An optional number as a CSV cell: empty when absent.
+pub(crate) fn opt_cell(v: Option<f64>) -> String {
+    v.map(|v| v.to_string()).unwrap_or_default()
+}

@@ -21,8 +21,8 @@
 //! Every finished render is cached (`OUT/cache`), so a stopped study resumes where it
 //! stopped, and `--scenes`, `--configs`, `--rho` and `--k` pick a subset.
 
-use super::common::{TileSheet, image_npy, read_image_npy, read_json, render_tracked, write_json};
-use crate::cli::common::{init_threads, progress_bar, stop_on_ctrl_c};
+use super::common::{Csv, TileSheet, image_npy, opt_cell, read_image_npy, read_json, render_tracked, write_json};
+use crate::cli::common::{RunArgs, init_threads, progress_bar, stop_on_ctrl_c};
 use crate::metrics::{
     Image, avg3, bias, false_colour, lit_mean, nonempty, projected_preview, reference_noise, relative_rmse_less, ttuv,
 };
@@ -88,10 +88,8 @@ pub struct EvalArgs {
     /// Output directory (tables, plots, sheets, and the render cache).
     #[arg(long, default_value = "out/eval")]
     pub out: PathBuf,
-    #[arg(long)]
-    pub threads: Option<usize>,
-    #[arg(long)]
-    pub quiet: bool,
+    #[command(flatten)]
+    pub run: RunArgs,
 }
 
 /// The evaluation scenes: label, modeler preset, default density scales.
@@ -214,7 +212,7 @@ pub fn eval_scene(preset: &str, config: &str, rho: f32, size: u32, res: u32) -> 
 
 /// Runs the study (or the selected part of it); returns every cell's result.
 pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
-    let threads = init_threads(args.threads)?;
+    let threads = init_threads(args.run.threads)?;
     for c in &args.configs {
         if crate::scene::CameraPreset::from_name(c).is_none() {
             bail!("--configs {c}: choose from toplit, backlit, frontlit");
@@ -252,7 +250,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 .flat_map(move |c| rhos.clone().into_iter().map(move |r| (*label, *preset, c.clone(), r)))
         })
         .collect();
-    if !args.quiet {
+    if !args.run.quiet {
         eprintln!(
             "nimbus eval: {} configurations x k {:?}, {}x{}, reference {} spp, predictions {} spp, p {}, {threads} threads, model {}",
             groups.len(),
@@ -266,7 +264,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         );
     }
     let renders_per_group = args.spp_ref as u64 + args.spp as u64 * args.k.len() as u64;
-    let bar = progress_bar(groups.len() as u64 * renders_per_group, "passes", args.quiet);
+    let bar = progress_bar(groups.len() as u64 * renders_per_group, "passes", args.run.quiet);
     let mut results = vec![];
     let mut grids: Vec<(String, Arc<DensityGrid>)> = vec![];
     for (gi, (label, preset, config, rho)) in groups.iter().enumerate() {
@@ -468,38 +466,32 @@ fn fmt_opt(v: Option<f64>) -> String {
 /// results.csv, results.md (tables like the thesis's B.1-B.6) and the bias and speedup
 /// plots against k (figure 5.8), one pair per scene.
 fn write_reports(out: &Path, results: &[CellResult], args: &EvalArgs) -> Result<()> {
-    let mut csv = String::from(
-        "scene,config,rho,k,p,size,spp_ref,spp,bias,rel_bias,rel_noise_floor,ttuv_ref,ttuv_pred,speedup,secs_ref,secs_pred,secs_field,secs_pilot,preview_secs_ref,preview_secs_pred,rmse_floor,preview_projected_ref,preview_projected_pred,ref_noise\n",
-    );
-    for c in results {
-        csv += &format!(
-            "{},{},{},{},{},{},{},{},{:.6e},{:.6},{:.6},{:.6e},{:.6e},{:.3},{:.2},{:.2},{:.2},{:.2},{},{},{},{},{},{}\n",
-            c.scene,
-            c.config,
-            c.rho,
-            c.k,
-            c.p,
-            c.size,
-            c.spp_ref,
-            c.spp,
-            c.bias,
-            c.rel_bias,
-            c.rel_noise_floor,
-            c.ttuv_ref,
-            c.ttuv_pred,
-            c.speedup,
-            c.secs_ref,
-            c.secs_pred,
-            c.secs_field,
-            c.secs_pilot,
-            c.preview_secs_ref.map(|v| v.to_string()).unwrap_or_default(),
-            c.preview_secs_pred.map(|v| v.to_string()).unwrap_or_default(),
-            c.rmse_floor.map(|v| v.to_string()).unwrap_or_default(),
-            c.preview_projected_ref.map(|v| v.to_string()).unwrap_or_default(),
-            c.preview_projected_pred.map(|v| v.to_string()).unwrap_or_default(),
-            c.ref_noise.map(|v| v.to_string()).unwrap_or_default()
-        );
-    }
+    let csv = Csv::<CellResult>::new()
+        .col("scene", |c| c.scene.clone())
+        .col("config", |c| c.config.clone())
+        .col("rho", |c| c.rho.to_string())
+        .col("k", |c| c.k.to_string())
+        .col("p", |c| c.p.to_string())
+        .col("size", |c| c.size.to_string())
+        .col("spp_ref", |c| c.spp_ref.to_string())
+        .col("spp", |c| c.spp.to_string())
+        .col("bias", |c| format!("{:.6e}", c.bias))
+        .col("rel_bias", |c| format!("{:.6}", c.rel_bias))
+        .col("rel_noise_floor", |c| format!("{:.6}", c.rel_noise_floor))
+        .col("ttuv_ref", |c| format!("{:.6e}", c.ttuv_ref))
+        .col("ttuv_pred", |c| format!("{:.6e}", c.ttuv_pred))
+        .col("speedup", |c| format!("{:.3}", c.speedup))
+        .col("secs_ref", |c| format!("{:.2}", c.secs_ref))
+        .col("secs_pred", |c| format!("{:.2}", c.secs_pred))
+        .col("secs_field", |c| format!("{:.2}", c.secs_field))
+        .col("secs_pilot", |c| format!("{:.2}", c.secs_pilot))
+        .col("preview_secs_ref", |c| opt_cell(c.preview_secs_ref))
+        .col("preview_secs_pred", |c| opt_cell(c.preview_secs_pred))
+        .col("rmse_floor", |c| opt_cell(c.rmse_floor))
+        .col("preview_projected_ref", |c| opt_cell(c.preview_projected_ref))
+        .col("preview_projected_pred", |c| opt_cell(c.preview_projected_pred))
+        .col("ref_noise", |c| opt_cell(c.ref_noise))
+        .render(results);
     write_bytes_atomically(&out.join("results.csv"), csv.as_bytes())?;
     let mut md = format!(
         "# nimbus eval\n\n{}x{} pixels, reference {} spp, predictions {} spp, p = {}, grids {}^3, albedo 1, HG g = 0.85.\n\
@@ -623,7 +615,7 @@ fn write_reports(out: &Path, results: &[CellResult], args: &EvalArgs) -> Result<
         )?;
     }
     write_bytes_atomically(&out.join("results.md"), md.as_bytes())?;
-    if !args.quiet {
+    if !args.run.quiet {
         println!("{md}");
         eprintln!("wrote results.md, results.csv, plots and sheets to {}", out.display());
     }

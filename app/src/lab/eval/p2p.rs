@@ -20,8 +20,8 @@
 //! Writes OUT/p2p.md, OUT/p2p.csv and one image sheet per configuration
 //! (figures 6.8-6.9: reference high orders, prediction, error).
 
-use super::common::{TileSheet, read_image_npy, read_json, render_tracked, write_json};
-use crate::cli::common::{init_threads, progress_bar, stop_on_ctrl_c};
+use super::common::{Csv, TileSheet, image_npy, read_image_npy, read_json, render_tracked, write_json};
+use crate::cli::common::{BdptPredictionArgs, RunArgs, init_threads, progress_bar, stop_on_ctrl_c};
 use crate::metrics::{Image, bias, false_colour, lit_mean, nonempty, ttuv};
 use crate::output::{ToneMap, write_bytes_atomically};
 use crate::scene::{PredictorCache, SceneFile};
@@ -52,17 +52,10 @@ pub struct EvalP2pArgs {
     /// Prediction probability p.
     #[arg(long, default_value_t = 1.0)]
     pub p: f32,
-    /// Distance threshold r.
-    #[arg(long, default_value_t = engine::integrator::bdpt::Prediction::DEFAULT_R)]
-    pub r: f32,
-    /// Light subpath candidates per camera end vertex (predictions and the estimated
-    /// baseline alike)
-    #[arg(long, default_value_t = engine::integrator::bdpt::Prediction::DEFAULT_CANDIDATES)]
-    pub candidates: u32,
-    /// Point-to-point samples averaged for each pair closer than r (predictions and
-    /// the estimated baseline alike)
-    #[arg(long, default_value_t = engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES)]
-    pub extension_samples: u32,
+    /// r, candidates and samples per close pair, for the predictions and the
+    /// estimated baseline alike.
+    #[command(flatten)]
+    pub bdpt: BdptPredictionArgs,
     /// The cloud (a modeler preset).
     #[arg(long, default_value = "scene-a")]
     pub cloud: String,
@@ -84,10 +77,8 @@ pub struct EvalP2pArgs {
     /// Output directory (tables, sheets and the render cache).
     #[arg(long, default_value = "out/eval-p2p")]
     pub out: PathBuf,
-    #[arg(long)]
-    pub threads: Option<usize>,
-    #[arg(long)]
-    pub quiet: bool,
+    #[command(flatten)]
+    pub run: RunArgs,
 }
 
 /// Thesis table 6.2: bias of the single and multi models (backlit k = 1..4, frontlit
@@ -187,9 +178,9 @@ fn scene_file(args: &EvalP2pArgs, config: &str) -> Result<SceneFile> {
         args.cloud,
         args.res,
         args.p,
-        args.r,
-        args.candidates,
-        args.extension_samples,
+        args.bdpt.r(),
+        args.bdpt.candidates(),
+        args.bdpt.extension_samples(),
         s = args.size
     );
     let s = SceneFile::from_toml_str(&text, "point-to-point evaluation scene")?;
@@ -231,7 +222,7 @@ fn cached(
     let t = render_tracked(scene.clone(), make()?, spp, control, None, false, on_pass)?;
     let imgs: Vec<Image> = bufs.iter().map(|b| Image::from_film(&t.film, *b)).collect();
     let layers: Vec<Vec<[f32; 3]>> = imgs.iter().flat_map(|i| [i.mean.clone(), i.var.clone()]).collect();
-    write_bytes_atomically(&npy, &super::common::image_npy(&layers, w, h))?;
+    write_bytes_atomically(&npy, &image_npy(&layers, w, h))?;
     let meta = RenderMeta { seconds: t.seconds, spp };
     write_json(&json, &meta)?;
     Ok((imgs, meta))
@@ -247,7 +238,7 @@ fn from_file(file: &SceneFile, scene: &Scene, predictors: &mut PredictorCache) -
 }
 
 pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
-    let threads = init_threads(args.threads)?;
+    let threads = init_threads(args.run.threads)?;
     for c in &args.configs {
         if !matches!(c.as_str(), "backlit" | "frontlit" | "toplit") {
             bail!("--configs {c}: choose from backlit, frontlit, toplit");
@@ -290,7 +281,7 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
     std::fs::create_dir_all(&cache).with_context(|| format!("cannot create {}", cache.display()))?;
     let per_config =
         args.spp_ref as u64 * (1 + args.k.len() as u64) + args.spp as u64 * (args.k.len() * (2 + models.len())) as u64;
-    let bar = progress_bar(per_config * args.configs.len() as u64, "spp", args.quiet);
+    let bar = progress_bar(per_config * args.configs.len() as u64, "spp", args.run.quiet);
     eprintln!(
         "point-to-point evaluation: {} at {}x{}, configs {:?}, k {:?}, {} spp references, {} spp predictions, {} threads",
         args.cloud, args.size, args.size, args.configs, args.k, args.spp_ref, args.spp, threads
@@ -305,7 +296,7 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
         let tag = format!("{}_{config}_{}_{}", args.cloud, args.size, args.res);
         // Prediction renders are named by their light subpath candidates (picked from
         // the pass's shared pool) and their samples per close pair.
-        let m = format!("_pool{}_x{}", args.candidates, args.extension_samples);
+        let m = format!("_pool{}_x{}", args.bdpt.candidates(), args.bdpt.extension_samples());
         let mut caches: Vec<PredictorCache> = models.iter().map(|_| PredictorCache::default()).collect();
         let mut none = PredictorCache::default();
         let step = |n: u32, start: u64| bar.set_position(start + n as u64);
@@ -352,27 +343,31 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
             pred.render.mode = "predict".into();
             pred.k = k;
             // The same subpaths with another transport between their ends, not a model.
-            let mut with_transport = |name: &str,
-                                      transport: Arc<dyn engine::TransportPredictor>|
-             -> Result<(Vec<Image>, RenderMeta)> {
-                let start = done;
-                let out = cached(
-                    &cache,
-                    &format!("{tag}_{name}_k{k}_p{}_r{}{m}_spp{}", args.p, args.r, args.spp),
-                    &scene,
-                    &mut || {
-                        Ok(Integrator::bdpt_prediction(pred.settings(), Default::default(), transport.clone(), args.r)?
-                            .with_light_candidates(args.candidates)?
-                            .with_extension_samples(args.extension_samples)?)
-                    },
-                    args.spp,
-                    &[Buffer::High],
-                    &control,
-                    &|n| step(n, start),
-                )?;
-                done += args.spp as u64;
-                Ok(out)
-            };
+            let mut with_transport =
+                |name: &str, transport: Arc<dyn engine::TransportPredictor>| -> Result<(Vec<Image>, RenderMeta)> {
+                    let start = done;
+                    let out = cached(
+                        &cache,
+                        &format!("{tag}_{name}_k{k}_p{}_r{}{m}_spp{}", args.p, args.bdpt.r(), args.spp),
+                        &scene,
+                        &mut || {
+                            Ok(Integrator::bdpt_prediction(
+                                pred.settings(),
+                                Default::default(),
+                                transport.clone(),
+                                args.bdpt.r(),
+                            )?
+                            .with_light_candidates(args.bdpt.candidates())?
+                            .with_extension_samples(args.bdpt.extension_samples())?)
+                        },
+                        args.spp,
+                        &[Buffer::High],
+                        &control,
+                        &|n| step(n, start),
+                    )?;
+                    done += args.spp as u64;
+                    Ok(out)
+                };
             let (base_img, base_meta) =
                 with_transport("estimated", Arc::new(engine::integrator::p2p::EstimatedTransport::default()))?;
             let ttuv_base = ttuv(&base_img[0].var, &mask, base_meta.seconds);
@@ -386,7 +381,7 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                     &cache,
                     // "_q16": features from the pyramid's 16-bit samples; renders
                     // timed with the earlier 32-bit ones are not reused.
-                    &format!("{tag}_pred_{id}_k{k}_p{}_r{}{m}_q16_spp{}", args.p, args.r, args.spp),
+                    &format!("{tag}_pred_{id}_k{k}_p{}_r{}{m}_q16_spp{}", args.p, args.bdpt.r(), args.spp),
                     &scene,
                     &mut || from_file(&pred, &scene, &mut caches[mi]),
                     args.spp,
@@ -435,7 +430,7 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
                     secs_free: free_meta.seconds,
                     free_ceiling: variance_ratio * base_meta.seconds / free_meta.seconds.max(1e-9),
                 };
-                if !args.quiet {
+                if !args.run.quiet {
                     bar.println(format!(
                         "{config} {name} k {k}: bias {:.2e} (relative {:.1} %, floor {:.1} %), speedup {:.2}x (thesis's baseline), {:.2}x vs BDPT high, {:.3}x vs path tracing",
                         cell.mae,
@@ -491,36 +486,30 @@ fn write_sheet(path: &Path, size: u32, rows: &[(Vec<[f32; 3]>, Vec<Vec<[f32; 3]>
 }
 
 fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()> {
-    let mut csv = String::from(
-        "config,model,k,mae,bias,rel_bias,rel_noise_floor,rel_bias_estimated,ttuv_bdpt_high,ttuv_estimated_high,ttuv_pred_high,speedup_thesis,speedup,ttuv_pt_full,ttuv_pred_full,vs_path_tracing,secs_ref,secs_pred,secs_estimated,variance_ratio,secs_free,free_ceiling\n",
-    );
-    for c in cells {
-        csv += &format!(
-            "{},{},{},{:.6e},{:.6e},{:.5},{:.5},{:.5},{:.6e},{:.6e},{:.6e},{:.4},{:.4},{:.6e},{:.6e},{:.5},{:.2},{:.2},{:.2},{:.4},{:.2},{:.4}\n",
-            c.config,
-            c.model,
-            c.k,
-            c.mae,
-            c.bias,
-            c.rel_bias,
-            c.rel_noise_floor,
-            c.rel_bias_estimated,
-            c.ttuv_bdpt_high,
-            c.ttuv_estimated_high,
-            c.ttuv_pred_high,
-            c.speedup_thesis,
-            c.speedup,
-            c.ttuv_pt_full,
-            c.ttuv_pred_full,
-            c.vs_path_tracing,
-            c.secs_ref,
-            c.secs_pred,
-            c.secs_estimated,
-            c.variance_ratio,
-            c.secs_free,
-            c.free_ceiling
-        );
-    }
+    let csv = Csv::<P2pCell>::new()
+        .col("config", |c| c.config.clone())
+        .col("model", |c| c.model.clone())
+        .col("k", |c| c.k.to_string())
+        .col("mae", |c| format!("{:.6e}", c.mae))
+        .col("bias", |c| format!("{:.6e}", c.bias))
+        .col("rel_bias", |c| format!("{:.5}", c.rel_bias))
+        .col("rel_noise_floor", |c| format!("{:.5}", c.rel_noise_floor))
+        .col("rel_bias_estimated", |c| format!("{:.5}", c.rel_bias_estimated))
+        .col("ttuv_bdpt_high", |c| format!("{:.6e}", c.ttuv_bdpt_high))
+        .col("ttuv_estimated_high", |c| format!("{:.6e}", c.ttuv_estimated_high))
+        .col("ttuv_pred_high", |c| format!("{:.6e}", c.ttuv_pred_high))
+        .col("speedup_thesis", |c| format!("{:.4}", c.speedup_thesis))
+        .col("speedup", |c| format!("{:.4}", c.speedup))
+        .col("ttuv_pt_full", |c| format!("{:.6e}", c.ttuv_pt_full))
+        .col("ttuv_pred_full", |c| format!("{:.6e}", c.ttuv_pred_full))
+        .col("vs_path_tracing", |c| format!("{:.5}", c.vs_path_tracing))
+        .col("secs_ref", |c| format!("{:.2}", c.secs_ref))
+        .col("secs_pred", |c| format!("{:.2}", c.secs_pred))
+        .col("secs_estimated", |c| format!("{:.2}", c.secs_estimated))
+        .col("variance_ratio", |c| format!("{:.4}", c.variance_ratio))
+        .col("secs_free", |c| format!("{:.2}", c.secs_free))
+        .col("free_ceiling", |c| format!("{:.4}", c.free_ceiling))
+        .render(cells);
     write_bytes_atomically(&out.join("p2p.csv"), csv.as_bytes())?;
     let thesis = |table: &[(&str, [f64; 4], [f64; 4])], model: &str, config: &str, k: u32| -> String {
         let Some(row) = table.iter().find(|r| r.0 == model) else { return "-".into() };
@@ -541,9 +530,9 @@ fn write_reports(out: &Path, cells: &[P2pCell], args: &EvalP2pArgs) -> Result<()
         args.spp_ref,
         args.spp,
         args.p,
-        args.r,
-        args.candidates,
-        args.extension_samples
+        args.bdpt.r(),
+        args.bdpt.candidates(),
+        args.bdpt.extension_samples()
     );
     md += "## Bias of the high orders (table 6.2)\n\nMAE: the thesis's measure (mean absolute error of the high-order \
            image, all pixels, linear; it includes noise, and its scale depends on the scene's brightness). Relative bias: \
