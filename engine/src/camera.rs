@@ -1,5 +1,9 @@
 //! Pinhole camera: position, target, up, vertical field of view, resolution.
 //! Pixel (0, 0) is the top-left pixel; x grows to the camera's right and y downward.
+//!
+//! Parameters ([`Camera::new`]): `position` and `target` finite and apart; `up` not
+//! parallel to the view direction; `fov_y_deg` in (0, 179] degrees (scene files: 30);
+//! `width` and `height` in 1 ..= 16384 pixels (scene files: 256).
 
 use glam::{Vec2, Vec3};
 

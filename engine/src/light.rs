@@ -1,4 +1,10 @@
 //! Lights: a directional sun (optionally a soft disk) and a constant sky.
+//!
+//! Parameters ([`Sun::new`]): `direction` the direction the light travels, any
+//! non-zero finite vector (normalized); `radiance` per channel, finite and >= 0
+//! (default in scene files 1, the thesis's L_L); `angular_radius` in radians,
+//! [0, 0.5] (0: a delta light). [`Sky`]: a constant `radiance` per channel (black by
+//! default), seen by paths that leave the medium.
 
 use crate::sampling::{local_to_world, sample_uniform_cone};
 use glam::{Vec2, Vec3};

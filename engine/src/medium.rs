@@ -7,6 +7,12 @@
 //! coefficients at a point, and the majorant segments along a ray. One tracking
 //! loop, [`Medium::sample_t_maj`], calls back at every tentative collision; the
 //! callers decide absorb, scatter or null.
+//!
+//! Parameters ([`Medium::with_majorant_cells`]): `rho` the density scale, per world
+//! unit, finite and >= 0 (sigma_t = rho d); `albedo` in [0, 1] (sigma_s = albedo
+//! sigma_t); `phase` ([`crate::phase`]); `cell_voxels` the majorant cell edge in
+//! voxels, >= 1 (default [`MajorantGrid::DEFAULT_CELL_VOXELS`] = 8). Bad values are
+//! errors naming the parameter.
 
 use crate::grid::{Bounds3, DensityGrid, floor_i32};
 use crate::phase::PhaseFunction;
