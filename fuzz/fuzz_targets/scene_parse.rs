@@ -17,7 +17,7 @@ fuzz_target!(|data: &[u8]| {
     scene.camera.width = scene.camera.width.min(4);
     scene.camera.height = scene.camera.height.min(4);
     if let Ok(s) = scene.build_scene(None) {
-        let _ = scene.integrator();
+        let _ = scene.integrator(&s, 4);
         let _ = s.camera.generate_ray(0, 0, glam::Vec2::splat(0.5));
     }
 });
