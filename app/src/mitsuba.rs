@@ -118,7 +118,7 @@ pub fn scene_xml(scene: &Scene, spp: u32, vol_name: &str) -> String {
 
 /// Writes `dir/cloud.vol` and `dir/scene.xml`.
 pub fn export(scene: &Scene, spp: u32, dir: &Path) -> Result<()> {
-    std::fs::create_dir_all(dir)?;
+    crate::output::create_dir(dir)?;
     output::write_bytes_atomically(&dir.join("cloud.vol"), &output::mitsuba_vol_bytes(scene.medium.grid()))?;
     output::write_bytes_atomically(&dir.join("scene.xml"), scene_xml(scene, spp, "cloud.vol").as_bytes())
 }

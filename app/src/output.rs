@@ -12,6 +12,11 @@ pub fn write_atomically(path: &Path, write: impl FnOnce(&Path) -> Result<()>) ->
     models::dataset::npy::write_atomically(path, write).with_context(|| format!("cannot write {}", path.display()))
 }
 
+/// Creates directory `dir` and its parents, naming it in the error.
+pub fn create_dir(dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create directory {}", dir.display()))
+}
+
 /// Writes bytes atomically.
 pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     models::dataset::npy::write_bytes_atomically(path, bytes)

@@ -34,8 +34,10 @@ use std::sync::Arc;
 
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
-    #[error("cannot read scene file {path}: {source}")]
-    Io { path: String, source: std::io::Error },
+    /// (The I/O error is part of the message, not a source, so that an error chain
+    /// does not print it twice.)
+    #[error("cannot read scene file {path}: {error}")]
+    Io { path: String, error: std::io::Error },
     #[error("scene file {path}: {message}")]
     Parse { path: String, message: String },
     #[error("{key} = {value} is out of range: {range}")]
@@ -270,6 +272,22 @@ impl Default for RenderDesc {
     }
 }
 
+/// Densities above this draw a warning: a grid holds values of order 1, scaled by
+/// `medium.rho`.
+pub const DENSITY_WARNING: f32 = 100.0;
+
+/// A warning when `grid` holds densities far above 1: a grid of another quantity
+/// (a temperature in kelvin, say) renders as a nearly opaque cloud, and slowly.
+pub fn density_warning(grid: &DensityGrid) -> Option<String> {
+    let max = grid.max_value();
+    (max > DENSITY_WARNING).then(|| {
+        format!(
+            "the cloud's densities reach {max:.3e}; Nimbus expects values of order 1 scaled by medium.rho, \
+             so this grid renders as a nearly opaque cloud (is it density, or another quantity?)"
+        )
+    })
+}
+
 /// The lighting configurations of the evaluation (thesis 5.5; docs/conventions.md).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CameraPreset {
@@ -318,7 +336,7 @@ impl SceneFile {
 
     pub fn load(path: &Path) -> Result<Self, SceneError> {
         let text = std::fs::read_to_string(path)
-            .map_err(|source| SceneError::Io { path: path.display().to_string(), source })?;
+            .map_err(|error| SceneError::Io { path: path.display().to_string(), error })?;
         let mut file = Self::from_toml_str(&text, &path.display().to_string())?;
         file.base_dir = path.parent().map(|d| d.to_path_buf());
         Ok(file)

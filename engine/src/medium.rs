@@ -198,6 +198,14 @@ pub enum FreeFlight {
     Escaped,
 }
 
+/// Optical depth per voxel edge at which extinction is capped: a voxel this thick
+/// lets through e^-32 (1e-14) of the light, opaque for all purposes. The cap bounds
+/// the work of tracking through any majorant cell (about 32 tentative collisions per
+/// voxel crossed) whatever the grid holds, so a grid with a huge or infinite density
+/// renders in bounded time; below it (every cloud the modeler makes: rho d per voxel
+/// is a few at most) nothing changes.
+pub const MAX_TAU_PER_VOXEL: f32 = 32.0;
+
 /// A heterogeneous cloud: a density grid scaled by rho, a constant albedo and phase
 /// function, and the majorant grid used for tracking.
 #[derive(Clone, Debug)]
@@ -205,6 +213,9 @@ pub struct Medium {
     grid: Arc<DensityGrid>,
     majorant: MajorantGrid,
     rho: f32,
+    /// The largest extinction (per world unit): [`MAX_TAU_PER_VOXEL`] over the
+    /// smallest voxel edge.
+    sigma_cap: f32,
     albedo: f32,
     phase: PhaseFunction,
 }
@@ -231,7 +242,8 @@ impl Medium {
             return Err(MediumError::BadAlbedo(albedo));
         }
         let majorant = MajorantGrid::new(&grid, cell_voxels);
-        Ok(Medium { grid, majorant, rho, albedo, phase })
+        let sigma_cap = MAX_TAU_PER_VOXEL / grid.voxel_size().min_element();
+        Ok(Medium { grid, majorant, rho, albedo, phase, sigma_cap })
     }
 
     pub fn grid(&self) -> &Arc<DensityGrid> {
@@ -254,10 +266,15 @@ impl Medium {
         self.grid.support_bounds()
     }
 
-    /// Extinction coefficient sigma_t(x) = rho * d(x).
+    /// Extinction coefficient sigma_t(x) = rho * d(x), at most [`Medium::sigma_cap`].
     #[inline]
     pub fn sigma_t(&self, p: Vec3) -> f32 {
-        self.rho * self.grid.lookup(p)
+        (self.rho * self.grid.lookup(p)).min(self.sigma_cap)
+    }
+
+    /// The largest extinction the medium has: [`MAX_TAU_PER_VOXEL`] per voxel edge.
+    pub fn sigma_cap(&self) -> f32 {
+        self.sigma_cap
     }
 
     /// The tracking loop: walks the majorant segments of `o + t d` (d unit length),
@@ -270,13 +287,16 @@ impl Medium {
         F: FnMut(f32, Vec3, f32, f32, &mut Rng) -> bool,
     {
         for seg in self.majorant.segments(o, d, 0.0, t_max) {
-            let sigma_maj = self.rho * seg.max_density;
+            let sigma_maj = (self.rho * seg.max_density).min(self.sigma_cap);
             if sigma_maj <= 0.0 {
                 continue;
             }
             let mut t = seg.t_min;
             loop {
-                t += sample_exponential(rng.uniform(), sigma_maj);
+                let next = t + sample_exponential(rng.uniform(), sigma_maj);
+                // A step below the float spacing at t would not move: take one spacing
+                // (far from the origin, with a capped but large majorant).
+                t = if next > t { next } else { t.next_up() };
                 if t >= seg.t_max {
                     break;
                 }
@@ -367,10 +387,17 @@ impl Medium {
             let n = (len / step).ceil().max(1.0) as u32;
             let h = len / n as f32;
             let mut sum = 0.0f32;
-            for i in 0..n {
-                sum += self.grid.lookup(o + d * (seg.t_min + (i as f32 + 0.5) * h));
+            if self.rho * seg.max_density <= self.sigma_cap {
+                for i in 0..n {
+                    sum += self.grid.lookup(o + d * (seg.t_min + (i as f32 + 0.5) * h));
+                }
+                tau += (sum * h * self.rho) as f64;
+            } else {
+                for i in 0..n {
+                    sum += self.sigma_t(o + d * (seg.t_min + (i as f32 + 0.5) * h));
+                }
+                tau += (sum * h) as f64;
             }
-            tau += (sum * h * self.rho) as f64;
             if tau as f32 > tau_stop {
                 break;
             }
@@ -393,6 +420,64 @@ mod tests {
         let mut rng = Rng::new(seed, 0, 0);
         let data: Vec<f32> = (0..n * n * n).map(|_| if rng.uniform() < 0.3 { 0.0 } else { rng.uniform() }).collect();
         DensityGrid::from_bounds(UVec3::splat(n), data, Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5))).unwrap()
+    }
+
+    /// A grid of 0.5 with one voxel of a huge density (1e30, the largest finite
+    /// float): tracking through it takes bounded work (at most about
+    /// MAX_TAU_PER_VOXEL tentative collisions per voxel crossed, where the uncapped
+    /// majorant would take ~1e30 steps, forever at float precision), the spike is
+    /// opaque, and ordinary densities are untouched by the cap.
+    #[test]
+    fn a_huge_density_is_opaque_and_bounded() {
+        let n = 16u32;
+        let bounds = Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5));
+        let ordinary = random_grid(n, 7);
+        let m = Medium::new(Arc::new(ordinary.clone()), 40.0, 1.0, PhaseFunction::Isotropic).unwrap();
+        let mut rng = Rng::new(3, 0, 0);
+        for _ in 0..10_000 {
+            let p = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5;
+            assert_eq!(m.sigma_t(p), 40.0 * ordinary.lookup(p), "the cap changed an ordinary density at {p}");
+        }
+        for spike in [1e30f32, f32::MAX] {
+            let mut data = vec![0.5f32; (n * n * n) as usize];
+            data[(8 + n * (8 + n * 8)) as usize] = spike;
+            let grid = DensityGrid::from_bounds(UVec3::splat(n), data, bounds).unwrap();
+            let m = Medium::new(Arc::new(grid.clone()), 40.0, 1.0, PhaseFunction::Isotropic).unwrap();
+            let centre = grid.origin() + (Vec3::splat(8.0) + 0.5) * grid.voxel_size();
+            assert!(m.sigma_t(centre).is_finite() && m.sigma_t(centre) == m.sigma_cap());
+            // Tentative collisions along rays through the spike, all taken as null:
+            // bounded by the capped majorant times the diagonal.
+            // (Stopped at the bound, so that without the cap this fails, not hangs.)
+            // 32 per voxel edge, written out: the bound must not move with the cap.
+            let bound = (4.0 * 32.0 * n as f32 * bounds.extent().length()) as u32;
+            let mut worst = 0u32;
+            for i in 0..200 {
+                let mut r = Rng::new(5, i, 0);
+                let d = crate::sampling::sample_uniform_sphere(r.uniform2());
+                let mut count = 0u32;
+                m.sample_t_maj(centre - 2.0 * d, d, f32::INFINITY, &mut r, |_, _, _, _, _| {
+                    count += 1;
+                    count < bound
+                });
+                worst = worst.max(count);
+            }
+            assert!(worst < bound, "spike {spike}: {worst} tentative collisions on one ray (bound {bound})");
+            // Opaque: ratio-tracked transmittance along an axis through its centre.
+            let mut sum = 0.0f64;
+            for i in 0..2000 {
+                let mut r = Rng::new(6, i, 0);
+                sum += m.transmittance_ratio(centre - Vec3::X, Vec3::X, 2.0, &mut r) as f64;
+            }
+            assert!(sum / 2000.0 < 1e-6, "spike {spike}: transmittance {}", sum / 2000.0);
+            // A free flight toward it stops at the spike at the latest.
+            let mut r = Rng::new(8, 0, 0);
+            for _ in 0..1000 {
+                match m.sample_free_flight(centre - Vec3::X, Vec3::X, f32::INFINITY, &mut r) {
+                    FreeFlight::Collision { t } => assert!(t <= 1.0 + 1.5 * grid.voxel_size().x, "{t}"),
+                    FreeFlight::Escaped => panic!("a ray through the spike escaped"),
+                }
+            }
+        }
     }
 
     /// The majorant bounds the interpolated density everywhere, including the

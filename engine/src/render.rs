@@ -2,9 +2,10 @@
 //! tiles with rayon and then added to the film in pixel order, so an image depends only
 //! on (seed, pass, pixel), never on the thread count or scheduling.
 //!
-//! A pass checks its [`RenderControl`] between tiles and is abandoned (never
-//! half-added) when the generation moves on or a stop is requested, so it stops within
-//! the time of one tile. The film sits behind a lock that is only held while a
+//! A pass checks its [`RenderControl`] before every row of every tile and is
+//! abandoned (never half-added) when the generation moves on or a stop is requested,
+//! so it stops within the time of one row of samples; the medium's extinction cap
+//! bounds that time whatever the grid holds. The film sits behind a lock that is only held while a
 //! finished pass is added, so other threads can take a snapshot at any time.
 
 use crate::film::Film;
@@ -133,6 +134,10 @@ impl Renderer {
                 // BDPT's predictions are evaluated per tile, in one batch.
                 let mut deferred = Vec::new();
                 for y in y0..y1 {
+                    // Checked per row too, so a stop acts within one row of samples.
+                    if control.should_abort(generation) {
+                        return None;
+                    }
                     for x in x0..x1 {
                         let pixel = y as u64 * w as u64 + x as u64;
                         let mut rng = Rng::new(seed, pass as u64, pixel);

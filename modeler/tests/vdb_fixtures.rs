@@ -8,7 +8,8 @@ use serde_json::Value;
 use std::path::Path;
 use std::process::Command;
 
-const FIXTURES: [&str; 5] = ["sphere_dense", "cloud_sparse", "transformed_zip", "multi_grid", "half_float"];
+const FIXTURES: [&str; 7] =
+    ["sphere_dense", "cloud_sparse", "transformed_zip", "multi_grid", "half_float", "half_zip", "half_sparse"];
 
 /// The first place where two JSON values differ, as a path and the two values.
 fn first_difference(a: &Value, b: &Value, at: &str) -> Option<String> {

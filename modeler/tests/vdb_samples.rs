@@ -1,10 +1,15 @@
 //! The VDB importer against files written by OpenVDB itself (tests/data/vdb, made by
 //! its make_fixtures.py, each with a JSON of its true contents computed by OpenVDB),
-//! the round trip through our writer, and bad input.
+//! float32 grids against vdb-rs 0.6, the round trip through our writer, and bad input.
 
-use modeler::vdb::{VdbReadError, read_vdb, read_vdb_bytes, vdb_bytes};
+use glam::{DVec3, IVec3, UVec3};
+use modeler::vdb::{VdbImport, VdbReadError, read_vdb, read_vdb_bytes, vdb_bytes};
+use rayon::prelude::*;
 use serde_json::Value;
 use std::path::PathBuf;
+
+const FIXTURES: [&str; 7] =
+    ["sphere_dense", "cloud_sparse", "transformed_zip", "multi_grid", "half_float", "half_zip", "half_sparse"];
 
 fn samples_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/vdb")
@@ -43,23 +48,29 @@ fn check_grid(file: &str, grid_name: &str, requested: Option<&str>) {
         assert!((imp.translation[a] - tr).abs() <= 1e-6 * s.abs().max(1.0), "{file}: translation {a}");
     }
     // Probe values, through the dense grid and through a world-space lookup at the
-    // voxel centre (which checks the placement and cell centring).
+    // voxel centre (which checks the placement and cell centring). OpenVDB's values
+    // are f32 (half floats converted to f32) written as f64, so they compare exactly;
+    // inactive voxels import as 0 whatever value they hold.
     for probe in g["values_at"].as_array().unwrap() {
-        let ijk = glam::IVec3::from_array(ivec(&probe["ijk"]));
-        let want = probe["value"].as_f64().unwrap() as f32;
+        let ijk = IVec3::from_array(ivec(&probe["ijk"]));
+        let want = if probe["active"].as_bool().unwrap() { probe["value"].as_f64().unwrap() as f32 } else { 0.0 };
         let r = ijk - imp.index_min;
         let dims = imp.grid.dims().as_ivec3();
-        let got = if r.cmpge(glam::IVec3::ZERO).all() && r.cmplt(dims).all() {
+        let got = if r.cmpge(IVec3::ZERO).all() && r.cmplt(dims).all() {
             imp.grid.voxel(r.x as u32, r.y as u32, r.z as u32)
         } else {
             0.0
         };
-        assert!((got - want).abs() <= 1e-6, "{file}: value at {ijk}: {got} vs {want}");
+        assert_eq!(got.to_bits(), want.to_bits(), "{file}: value at {ijk}: {got} vs {want}");
         let world = (imp.translation + imp.voxel_size * ijk.as_dvec3()).as_vec3();
         let looked_up = imp.grid.lookup(world);
+        // The lookup works in f32: the voxel centre lands a few ulps of the world
+        // position off, which at an isolated voxel (all neighbours 0) shows in full.
+        let ulps = 4.0 * f32::EPSILON * (world.abs() + imp.grid.origin().abs()).max_element();
+        let tolerance = imp.grid.max_value().max(1.0) * (1e-5 + ulps / imp.grid.voxel_size().min_element());
         assert!(
-            (looked_up - want).abs() <= 1e-5 * imp.grid.max_value().max(1.0),
-            "{file}: lookup at {world} ({ijk}): {looked_up} vs {want}"
+            (looked_up - want).abs() <= tolerance,
+            "{file}: lookup at {world} ({ijk}): {looked_up} vs {want} (tolerance {tolerance})"
         );
     }
 }
@@ -90,11 +101,126 @@ fn multi_grid_by_default_and_by_name() {
 }
 
 #[test]
-fn half_float_is_refused_clearly() {
-    let e = read_vdb(&samples_dir().join("half_float.vdb"), None).unwrap_err();
-    let msg = e.to_string();
-    assert!(matches!(e, VdbReadError::Unsupported { .. }), "{msg}");
-    assert!(msg.contains("half_float.vdb") && msg.contains("half floats") && msg.contains("blosc"), "{msg}");
+fn half_float_blosc() {
+    check_grid("half_float", "density", None);
+}
+
+#[test]
+fn half_float_zip_imports_as_the_blosc_file() {
+    check_grid("half_zip", "density", None);
+    let (a, b) = (
+        read_vdb(&samples_dir().join("half_float.vdb"), None).unwrap(),
+        read_vdb(&samples_dir().join("half_zip.vdb"), None).unwrap(),
+    );
+    assert_same(&a, &b, "half_zip vs half_float");
+}
+
+/// A 128^3 tile, 8^3 tiles, partial leaves, isolated voxels far apart, and inactive
+/// values other than the background (stored as 32-bit floats in half-float arrays).
+#[test]
+fn half_float_sparse_with_tiles() {
+    check_grid("half_sparse", "density", None);
+    let imp = read_vdb(&samples_dir().join("half_sparse.vdb"), None).unwrap();
+    assert_eq!(imp.grid.dims(), UVec3::new(232, 170, 198));
+    // Every voxel of the 128^3 tile [0, 127]^3 holds its value.
+    let r = (IVec3::ZERO - imp.index_min).as_uvec3();
+    for (x, y, z) in [(0, 0, 0), (127, 0, 0), (0, 127, 0), (0, 0, 127), (127, 127, 127), (31, 77, 120)] {
+        assert_eq!(imp.grid.voxel(r.x + x, r.y + y, r.z + z), 0.375);
+    }
+}
+
+fn assert_same(a: &VdbImport, b: &VdbImport, what: &str) {
+    assert_eq!(a.grid.dims(), b.grid.dims(), "{what}: dims");
+    assert_eq!(a.index_min, b.index_min, "{what}: index box");
+    assert!(a.grid.data().iter().zip(b.grid.data()).all(|(x, y)| x.to_bits() == y.to_bits()), "{what}: values");
+    assert_eq!(a.grid.origin().to_array().map(f32::to_bits), b.grid.origin().to_array().map(f32::to_bits), "{what}");
+    assert_eq!(a.grid.voxel_size().to_array().map(f32::to_bits), b.grid.voxel_size().to_array().map(f32::to_bits));
+    assert_eq!((a.active_voxels, a.active_tiles, a.sum.to_bits()), (b.active_voxels, b.active_tiles, b.sum.to_bits()));
+    assert_eq!((a.voxel_size, a.translation), (b.voxel_size, b.translation), "{what}: transform");
+}
+
+/// A float32 grid imported through vdb-rs 0.6 (which reads 32-bit grids correctly
+/// while their index coordinates stay within +-2^24, the range of its f32 positions)
+/// and resampled into a dense grid over the active box: the values, box, transform
+/// and sum (accumulated in vdb-rs's iteration order) the importer must reproduce.
+struct Reference {
+    values: Vec<f32>,
+    lo: IVec3,
+    dims: UVec3,
+    origin: glam::Vec3,
+    active: u64,
+    tiles: u64,
+    sum: f64,
+    scale: DVec3,
+    translation: DVec3,
+}
+
+fn vdb_rs_reference(data: &[u8], name: &str) -> Reference {
+    let mut r = vdb_rs::VdbReader::new(std::io::Cursor::new(data)).unwrap();
+    let g = r.read_grid::<f32>(name).unwrap();
+    let (scale, translation) = match &g.transform {
+        vdb_rs::Map::UniformScaleMap { scale_values: s, .. } => (DVec3::new(s.x, s.y, s.z), DVec3::ZERO),
+        vdb_rs::Map::ScaleTranslateMap { scale_values: s, translation: t, .. } => {
+            (DVec3::new(s.x, s.y, s.z), DVec3::new(t.x, t.y, t.z))
+        }
+    };
+    let items: Vec<(IVec3, i32, f32)> = g
+        .iter()
+        .map(|(pos, v, level)| (IVec3::new(pos.x as i32, pos.y as i32, pos.z as i32), level.scale() as i32, v))
+        .collect();
+    let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
+    let (mut active, mut tiles, mut sum) = (0u64, 0u64, 0.0f64);
+    for &(c, edge, v) in &items {
+        lo = lo.min(c);
+        hi = hi.max(c + edge - 1);
+        let n = (edge as u64).pow(3);
+        active += n;
+        tiles += (edge > 1) as u64;
+        sum += v as f64 * n as f64;
+    }
+    let dims = (hi - lo + 1).as_uvec3();
+    let mut values = vec![0.0f32; dims.x as usize * dims.y as usize * dims.z as usize];
+    for &(c, edge, v) in &items {
+        for z in 0..edge {
+            for y in 0..edge {
+                for x in 0..edge {
+                    let r = (c + IVec3::new(x, y, z) - lo).as_uvec3();
+                    values[r.x as usize + dims.x as usize * (r.y as usize + dims.y as usize * r.z as usize)] = v;
+                }
+            }
+        }
+    }
+    let origin = (translation + scale * (lo.as_dvec3() - 0.5)).as_vec3();
+    Reference { values, lo, dims, origin, active, tiles, sum, scale, translation }
+}
+
+/// Float32 grids import bit for bit as through vdb-rs 0.6: OpenVDB's files (blosc,
+/// zip, tiles, two grids), libopenvdb's tiny reference file, and our writer's.
+#[test]
+fn float_grids_match_vdb_rs() {
+    let mut files: Vec<(String, Vec<u8>, &str)> = Vec::new();
+    for file in ["sphere_dense", "cloud_sparse", "transformed_zip", "multi_grid"] {
+        files.push((file.into(), std::fs::read(samples_dir().join(format!("{file}.vdb"))).unwrap(), "density"));
+    }
+    let multi = std::fs::read(samples_dir().join("multi_grid.vdb")).unwrap();
+    files.push(("multi_grid/temperature".into(), multi, "temperature"));
+    let tiny = std::fs::read(samples_dir().join("../openvdb_tiny_mask.vdb")).unwrap();
+    files.push(("openvdb_tiny_mask".into(), tiny, "density"));
+    for preset in ["scene-a", "scene-c"] {
+        let grid = modeler::build_grid(&modeler::preset(preset).unwrap(), 48).unwrap();
+        files.push((preset.into(), vdb_bytes(&grid, "density").unwrap(), "density"));
+    }
+    for (what, data, grid) in &files {
+        let want = vdb_rs_reference(data, grid);
+        let got = read_vdb_bytes(data, what, Some(grid)).unwrap();
+        assert_eq!((got.index_min, got.grid.dims()), (want.lo, want.dims), "{what}: box");
+        assert!(got.grid.data().iter().zip(&want.values).all(|(a, b)| a.to_bits() == b.to_bits()), "{what}: values");
+        assert_eq!(got.grid.origin().to_array().map(f32::to_bits), want.origin.to_array().map(f32::to_bits), "{what}");
+        assert_eq!(got.grid.voxel_size(), want.scale.as_vec3(), "{what}");
+        assert_eq!((got.voxel_size, got.translation), (want.scale, want.translation), "{what}: transform");
+        assert_eq!((got.active_voxels, got.active_tiles), (want.active, want.tiles), "{what}: counts");
+        assert_eq!(got.sum.to_bits(), want.sum.to_bits(), "{what}: sum {} vs {}", got.sum, want.sum);
+    }
 }
 
 #[test]
@@ -132,7 +258,7 @@ fn bad_files_give_errors_not_crashes() {
     assert!(matches!(read_vdb_bytes(&[], "empty.vdb", None), Err(VdbReadError::NotVdb { .. })));
     let e = read_vdb(&samples_dir().join("does-not-exist.vdb"), None).unwrap_err();
     assert!(e.to_string().contains("does-not-exist.vdb"));
-    for file in ["sphere_dense", "cloud_sparse", "transformed_zip", "multi_grid", "half_float"] {
+    for file in FIXTURES {
         let data = std::fs::read(samples_dir().join(format!("{file}.vdb"))).unwrap();
         // Truncations at 40 points through the file.
         for i in 1..40 {
@@ -146,21 +272,28 @@ fn bad_files_give_errors_not_crashes() {
         let msg = read_vdb_bytes(&v, file, None).unwrap_err().to_string();
         assert!(msg.contains("version 200"), "{msg}");
         // Damaged bytes in the header, descriptors and grid metadata (where the
-        // preflight answers for the whole importer).
+        // preflight answers for the whole importer), then anywhere: in the tree's
+        // masks, chunk sizes and compressed values. What imports must be finite (a
+        // flipped bit in a blosc chunk, which has no checksum, can give other values).
         let mut rng = engine::Rng::new(99, file.len() as u64, 0);
-        for _ in 0..200 {
+        let mut flips: Vec<(usize, u8)> =
+            (0..200).map(|_| ((rng.uniform() * 400.0) as usize % data.len(), 1 << (rng.next_u32() % 8))).collect();
+        flips.extend(
+            (0..200).map(|_| ((rng.uniform() * data.len() as f32) as usize % data.len(), 1 << (rng.next_u32() % 8))),
+        );
+        flips.par_iter().for_each(|&(at, bit)| {
             let mut d = data.clone();
-            let at = (rng.uniform() * 400.0) as usize % d.len();
-            d[at] ^= 1 << (rng.next_u32() % 8);
-            let _ = read_vdb_bytes(&d, file, None); // Ok or Err, never a panic
-        }
+            d[at] ^= bit;
+            if let Ok(imp) = read_vdb_bytes(&d, file, None) {
+                assert!(imp.grid.max_value().is_finite() && imp.sum.is_finite(), "{file}: byte {at}");
+            }
+        });
     }
 }
 
-/// Found by `cargo fuzz run vdb_import`: a damaged zip/blosc chunk size of 64 GiB
-/// made vdb-rs allocate it and abort the process (the tree scan refuses it first); a
-/// metadata entry whose stored size disagreed with its type made vdb-rs lose its
-/// place and allocate a 4 GiB string (the preflight checks fixed-size types).
+/// Files found by `cargo fuzz run vdb_import`: a damaged chunk size of 64 GiB, and a
+/// metadata entry whose stored size disagrees with its type. The preflight refuses
+/// both before anything is allocated from them.
 #[test]
 fn fuzz_regressions() {
     for name in ["fuzz_huge_chunk.vdb", "fuzz_metadata_size.vdb"] {
@@ -168,4 +301,30 @@ fn fuzz_regressions() {
         let e = read_vdb_bytes(&std::fs::read(path).unwrap(), name, None).unwrap_err();
         assert!(matches!(e, VdbReadError::Corrupt { .. }), "{name}: {e}");
     }
+}
+
+/// Messages for grids that cannot be read say what the file holds: a vector grid
+/// named "density" is named as such (not "no grid named 'density'"), and a damaged
+/// transform name is shown escaped, not as raw control characters.
+#[test]
+fn messages_say_what_the_file_holds() {
+    let grid =
+        engine::DensityGrid::from_fn(UVec3::splat(4), engine::Bounds3::new(glam::Vec3::ZERO, glam::Vec3::ONE), |p| p.x)
+            .unwrap();
+    let bytes = vdb_bytes(&grid, "density").unwrap();
+    let replace = |from: &[u8], to: &[u8]| -> Vec<u8> {
+        assert_eq!(from.len(), to.len());
+        let at = bytes.windows(from.len()).position(|w| w == from).expect("the string is in the file");
+        let mut b = bytes.clone();
+        b[at..at + to.len()].copy_from_slice(to);
+        b
+    };
+    let vec3 = replace(b"Tree_float_5_4_3", b"Tree_vec3s_5_4_3");
+    let e = read_vdb_bytes(&vec3, "velocity.vdb", None).unwrap_err().to_string();
+    assert!(e.contains("'density' holds Tree_vec3s_5_4_3") && e.contains("float grids"), "{e}");
+    assert!(!e.contains("no grid named"), "{e}");
+    let bell = replace(b"UniformScaleTranslateMap", b"Uniform\x07\x1b[2JTranslateMap");
+    let e = read_vdb_bytes(&bell, "bell.vdb", None).unwrap_err().to_string();
+    assert!(!e.chars().any(|c| c.is_control()), "raw control characters in {e:?}");
+    assert!(e.contains("\\u{7}"), "{e}");
 }

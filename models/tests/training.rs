@@ -208,6 +208,26 @@ fn an_interrupted_training_resumes_to_the_same_weights() {
     assert!(e.to_string().contains("--resume"), "{e}");
     let (resumed, report) = train(&data, &cfg, &dir.join("b"), true, "test", "test", &Quiet).unwrap();
     assert_eq!(report.history.len(), 4);
+    // The model and checkpoint files have the permissions of any other new file
+    // (not the 0600 of a temporary-file library), and no temporary is left.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = |p: &std::path::Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        std::fs::write(dir.join("plain"), b"x").unwrap();
+        let plain = mode(&dir.join("plain"));
+        for f in ["b.safetensors", "b.json", "b.checkpoint/state.safetensors"] {
+            assert_eq!(mode(&dir.join(f)), plain, "{f}");
+        }
+        for d in [dir.clone(), dir.join("b.checkpoint")] {
+            let left: Vec<_> = std::fs::read_dir(&d)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .filter(|n| n.starts_with('.'))
+                .collect();
+            assert!(left.is_empty(), "temporaries left in {}: {left:?}", d.display());
+        }
+    }
     let (mut s1, mut s2) = (full.mlp.scratch(), resumed.mlp.scratch());
     for row in data.features.chunks_exact(8).take(50) {
         let (a, b) = (full.predict_features(row, &mut s1), resumed.predict_features(row, &mut s2));

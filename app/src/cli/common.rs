@@ -24,14 +24,27 @@ pub fn init_threads(threads: Option<usize>) -> Result<usize> {
     Ok(rayon::current_num_threads())
 }
 
-/// Ctrl-C asks `control` to stop after the current pass.
+/// The first Ctrl-C prints `what` and calls `stop` (the command winds down and keeps
+/// its work); a second one quits at once with exit status 130. If a handler is
+/// already installed (tests), the command goes on without one.
+pub fn on_ctrl_c(what: &'static str, stop: impl Fn() + Send + 'static) {
+    let presses = std::sync::atomic::AtomicU32::new(0);
+    let _ = ctrlc::set_handler(move || {
+        if presses.fetch_add(1, Ordering::SeqCst) == 0 {
+            eprintln!("\n{what} (Ctrl-C again quits at once)");
+            stop();
+        } else {
+            eprintln!("\nquitting");
+            std::process::exit(130);
+        }
+    });
+}
+
+/// Ctrl-C asks `control` to stop; the pass under way is abandoned within a row of
+/// samples and the finished passes are kept.
 pub fn stop_on_ctrl_c(control: &Arc<RenderControl>) {
     let c = control.clone();
-    // If a handler is already installed (tests), keep going without one.
-    let _ = ctrlc::set_handler(move || {
-        eprintln!("\nstopping after the current pass; the samples so far are kept");
-        c.request_stop();
-    });
+    on_ctrl_c("stopping: the finished passes are kept", move || c.request_stop());
 }
 
 /// The CLI's progress bar; `unit` names what is counted (spp, points, batches).
@@ -50,14 +63,11 @@ pub fn progress_bar(len: u64, unit: &str, quiet: bool) -> ProgressBar {
     bar
 }
 
-/// Ctrl-C sets the flag: the chunks on disk are kept, the run can be resumed.
-pub fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
+/// A flag that Ctrl-C sets (see [`on_ctrl_c`]), with `what` to say it was seen.
+pub fn cancel_on_ctrl_c(what: &'static str) -> Arc<AtomicBool> {
     let flag = Arc::new(AtomicBool::new(false));
     let f = flag.clone();
-    let _ = ctrlc::set_handler(move || {
-        eprintln!("\nstopping: finished chunks are kept; run the same command again to resume");
-        f.store(true, Ordering::Relaxed);
-    });
+    on_ctrl_c(what, move || f.store(true, Ordering::Relaxed));
     flag
 }
 

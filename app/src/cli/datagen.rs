@@ -174,10 +174,15 @@ impl<'a> Run<'a> {
             self.args.out.display()
         );
         let bar = progress_bar(owned, "points", self.args.run.quiet);
-        let cancel = cancel_on_ctrl_c();
+        let cancel = cancel_on_ctrl_c("stopping: finished chunks are kept; run the same command again to resume");
         let started = std::time::Instant::now();
+        let before = damaged_chunks(&self.args.out);
         let (complete, counts) = generate(&|n| bar.set_position(n), &cancel)?;
         bar.finish_and_clear();
+        let damaged = damaged_chunks(&self.args.out).saturating_sub(before);
+        if damaged > 0 {
+            eprintln!("warning: {damaged} damaged chunk(s) were set aside as chunks/*.npy.damaged and made again");
+        }
         println!(
             "{} {owned} points in {:.1} s this run ({:.1} s total), {} path samples; {}",
             if complete { "complete:" } else { "shard done:" },
@@ -188,6 +193,12 @@ impl<'a> Run<'a> {
         );
         Ok(())
     }
+}
+
+/// Chunks set aside as damaged in `dir`.
+fn damaged_chunks(dir: &std::path::Path) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir.join("chunks")) else { return 0 };
+    entries.flatten().filter(|e| e.file_name().to_string_lossy().ends_with(".damaged")).count()
 }
 
 /// The cloud of `nimbus datagen p2p --cloud`: a built-in cloud, a modeler preset or a

@@ -56,7 +56,19 @@ pub fn load_params(source: &str) -> Result<CloudParams> {
     if !path.exists() {
         bail!("'{source}' is neither a preset ({}) nor an existing parameter file", modeler::PRESET_NAMES.join(", "));
     }
-    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {source}"))?;
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {source}"))?;
+    let text = match String::from_utf8(bytes) {
+        Ok(text) => text,
+        Err(e) => {
+            // OpenVDB files begin with the magic number 0x56444220 (little-endian).
+            let vdb = e.as_bytes().starts_with(&[0x20, 0x42, 0x44, 0x56]);
+            bail!(
+                "{source} is not a TOML file of modeler parameters ({}); give a preset ({}) or a TOML file",
+                if vdb { "it is a VDB file, which a scene uses as [grid] file = ..." } else { "it is binary" },
+                modeler::PRESET_NAMES.join(", ")
+            );
+        }
+    };
     let params: CloudParams =
         toml::from_str(&text).map_err(|e| anyhow::anyhow!("{source}: {}", e.to_string().trim()))?;
     params.validate().with_context(|| format!("{source}"))?;

@@ -72,6 +72,14 @@ pub struct RenderArgs {
     pub bdpt: BdptPredictionArgs,
 }
 
+/// An error unless `path` ends in `.ext` (any case), saying what the flag takes.
+fn check_extension(flag: &str, path: &Path, ext: &str, what: &str) -> Result<()> {
+    if !path.extension().is_some_and(|e| e.eq_ignore_ascii_case(ext)) {
+        bail!("{flag} {}: expected a .{ext} name ({what})", path.display());
+    }
+    Ok(())
+}
+
 fn parse_size(s: &str) -> Result<(u32, u32)> {
     let (w, h) = s.split_once('x').with_context(|| format!("--size {s}: expected WIDTHxHEIGHT, e.g. 512x512"))?;
     Ok((w.trim().parse().context("--size width")?, h.trim().parse().context("--size height")?))
@@ -84,6 +92,13 @@ pub fn render(args: RenderArgs) -> Result<()> {
         .with_context(|| format!("--tonemap {}: choose filmic or clamp", args.tonemap))?;
     if args.spp == 0 {
         bail!("--spp must be at least 1");
+    }
+    if !args.exposure.is_finite() {
+        bail!("--exposure must be a finite number of stops, got {}", args.exposure);
+    }
+    check_extension("--out", &args.out, "exr", "an OpenEXR file; the PNG goes to --png")?;
+    if let Some(png) = &args.png {
+        check_extension("--png", png, "png", "a PNG file")?;
     }
     let mut file = SceneFile::load(&args.scene)?;
     if let Some(k) = args.k {
@@ -126,7 +141,17 @@ pub fn render(args: RenderArgs) -> Result<()> {
         file.render.p2p_model = Some(std::path::absolute(m)?.display().to_string());
     }
     file.validate()?;
+    // A model named on the command line must load: the scene file's own falls back.
+    if args.model.is_some() {
+        file.load_model().context("--model")?;
+    }
+    if args.p2p_model.is_some() {
+        file.load_p2p_model().map_err(anyhow::Error::msg).context("--p2p-model")?;
+    }
     let scene = Arc::new(file.build_scene(None)?);
+    if let Some(w) = crate::scene::density_warning(scene.medium.grid()) {
+        eprintln!("warning: {w}");
+    }
     let setup = file.integrator(&scene, models::global::depth_field::DEFAULT_MAX_NODES)?;
     if let Some(w) = &setup.warning {
         eprintln!("warning: {w}");

@@ -1,7 +1,7 @@
 //! `nimbus train global|p2p`: training with candle, a progress bar, Ctrl-C after the
 //! current epoch, checkpoints and `--resume`.
 
-use super::common::{RunArgs, code_version, init_threads, progress_bar};
+use super::common::{RunArgs, cancel_on_ctrl_c, code_version, init_threads, progress_bar};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use indicatif::ProgressBar;
@@ -82,12 +82,7 @@ fn train_p2p(args: TrainP2pArgs) -> Result<()> {
     init_threads(args.run.threads)?;
     let t = std::time::Instant::now();
     let bar = progress_bar(args.epochs as u64, "epochs", args.run.quiet);
-    let cancel = Arc::new(AtomicBool::new(false));
-    let flag = cancel.clone();
-    let _ = ctrlc::set_handler(move || {
-        eprintln!("\nstopping after this epoch; rerun with --resume to go on");
-        flag.store(true, Ordering::Relaxed);
-    });
+    let cancel = cancel_on_ctrl_c("stopping after this epoch; rerun with --resume to go on");
     let side = models::p2p::train::train(&args.data, &cfg, &args.out, args.resume, &cancel, &|e, test| {
         bar.set_position(e as u64);
         bar.set_message(format!("test mse {test:.4}"));
@@ -221,12 +216,7 @@ pub fn train(cmd: TrainCommand) -> Result<()> {
         t.elapsed().as_secs_f64()
     );
     let bar = progress_bar(1, "batches", args.run.quiet);
-    let cancel = Arc::new(AtomicBool::new(false));
-    let c = cancel.clone();
-    let _ = ctrlc::set_handler(move || {
-        eprintln!("\nstopping: the last finished epoch is checkpointed; continue with --resume");
-        c.store(true, Ordering::Relaxed);
-    });
+    let cancel = cancel_on_ctrl_c("stopping: the last finished epoch is checkpointed; continue with --resume");
     let command: Vec<String> = std::env::args().collect();
     let observer = BarObserver { bar, cancel };
     let (_, report) = models::global::train::train(

@@ -82,8 +82,9 @@ fn build_job(
     } else {
         None
     };
+    let warning = crate::scene::density_warning(scene.medium.grid()).or(setup.warning);
     let r = Renderer::new(scene, setup.integrator).map_err(|e| e.to_string())?;
-    Ok((r, reference, setup.warning))
+    Ok((r, reference, warning))
 }
 
 /// Shared between the worker and the UI.

@@ -20,6 +20,27 @@ pub fn chunk_path(dir: &Path, chunk: u64) -> PathBuf {
     dir.join("chunks").join(format!("chunk-{chunk:06}.npy"))
 }
 
+/// Where a damaged chunk is set aside (kept for inspection) before it is made again.
+pub fn damaged_path(dir: &Path, chunk: u64) -> PathBuf {
+    dir.join("chunks").join(format!("chunk-{chunk:06}.npy.damaged"))
+}
+
+/// Chunk `c` of `spec` as read from `path`, if it holds what it should: the shape
+/// [points x rows per point, features + 5] and finite values only. The error says
+/// what is wrong.
+fn read_chunk<S: DataSpec>(spec: &S, c: u64, path: &Path) -> Result<Vec<f32>, String> {
+    let cols = spec.n_features() + 5;
+    let rows = (spec.chunk_len(c) * spec.rows_per_point()) as usize;
+    let (shape, data) = npy::read_f32(path).map_err(|e| e.to_string())?;
+    if shape != [rows, cols] {
+        return Err(format!("{}: shape {shape:?}, expected [{rows}, {cols}]", path.display()));
+    }
+    if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+        return Err(format!("{}: row {} column {} is {} (not finite)", path.display(), i / cols, i % cols, data[i]));
+    }
+    Ok(data)
+}
+
 /// Generates (or resumes) this shard's chunks of `spec` in `dir`. `prepare` is
 /// called once the manifest says there is work left and gives what the points share
 /// (a feature extractor, a medium); `point(&shared, i)` makes data point i's rows
@@ -67,6 +88,15 @@ fn make_chunks<S: DataSpec>(
 ) -> Result<u64, DatagenError> {
     let spec = manifest.settings.clone();
     let chunks: Vec<u64> = (0..spec.n_chunks()).filter(|&c| shard.owns(c)).collect();
+    // Chunks on disk are checked before they count as done: a damaged one (cut
+    // short, wrong shape, a value that is not finite) is set aside and made again.
+    for &c in &chunks {
+        let path = chunk_path(dir, c);
+        if path.exists() && read_chunk(&spec, c, &path).is_err() {
+            std::fs::rename(&path, damaged_path(dir, c))
+                .map_err(|e| DatagenError::File { path: path.clone(), why: format!("cannot set it aside: {e}") })?;
+        }
+    }
     let todo: Vec<u64> = chunks.iter().copied().filter(|&c| !chunk_path(dir, c).exists()).collect();
     let owned: u64 = chunks.iter().map(|&c| spec.chunk_len(c)).sum();
     let done = AtomicU64::new(owned - todo.iter().map(|&c| spec.chunk_len(c)).sum::<u64>());
@@ -174,11 +204,7 @@ pub fn merge<S: DataSpec>(dirs: &[PathBuf], out: &Path) -> Result<Manifest<S>, D
     let mut targets = Vec::with_capacity(n_rows * 5);
     for (c, k) in owner.iter().enumerate() {
         let path = chunk_path(&dirs[k.unwrap()], c as u64);
-        let (shape, data) = npy::read_f32(&path)?;
-        let expect = (spec.chunk_len(c as u64) * spec.rows_per_point()) as usize;
-        if shape != [expect, n_f + 5] {
-            return Err(DatagenError::File { path, why: format!("shape {shape:?}, expected [{expect}, {}]", n_f + 5) });
-        }
+        let data = read_chunk(&spec, c as u64, &path).map_err(|why| DatagenError::Chunk { why })?;
         for row in data.chunks_exact(n_f + 5) {
             features.extend_from_slice(&row[..n_f]);
             targets.extend_from_slice(&row[n_f..]);

@@ -12,10 +12,13 @@ use std::path::{Path, PathBuf};
 pub enum DatagenError {
     #[error("{flag}: {why}")]
     Setting { flag: &'static str, why: String },
-    #[error("{0}")]
+    #[error(transparent)]
     Npy(#[from] npy::NpyError),
     #[error("{path}: {why}")]
     File { path: PathBuf, why: String },
+    /// A chunk that does not hold what it should (the message names it).
+    #[error("{why}; run the generator on its shard again to make it anew")]
+    Chunk { why: String },
     #[error("{dir} already holds a data set made with other settings: {diff}; use another --out or the same settings")]
     Mismatch { dir: PathBuf, diff: String },
     #[error("cancelled; {done} of {total} chunks are on disk, run the same command again to resume")]
@@ -92,6 +95,8 @@ pub trait DataSpec: Clone + PartialEq + Serialize + DeserializeOwned + Sync {
     const TARGET_COLUMNS: [&'static str; 5];
     /// Manifest fields particular to this data set, written after `shard`.
     type Header: Clone + std::fmt::Debug + Serialize + DeserializeOwned;
+    /// Checks every setting; the error names the command-line flag.
+    fn validate(&self) -> Result<(), DatagenError>;
     fn header(&self) -> Self::Header;
     fn points(&self) -> u64;
     /// Points per chunk file (the unit of resuming and sharding).
@@ -151,17 +156,30 @@ impl<S: DataSpec> Manifest<S> {
         }
     }
 
-    /// Reads `dir/manifest.json` and checks its format and version.
+    /// Reads `dir/manifest.json` (see [`Manifest::from_json`]).
     pub fn load(dir: &Path) -> Result<Self, DatagenError> {
         let path = dir.join("manifest.json");
         let text = std::fs::read_to_string(&path)
             .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
-        let m: Self = serde_json::from_str(&text)
-            .map_err(|e| DatagenError::File { path: path.clone(), why: format!("not {}: {e}", S::WHAT) })?;
+        Self::from_json(&text, &path)
+    }
+
+    /// A manifest from its text (`path` names it in messages): checks its format and
+    /// version and that its settings are valid, so that nothing computed from them
+    /// later (chunk counts, shapes) can fail.
+    pub fn from_json(text: &str, path: &Path) -> Result<Self, DatagenError> {
+        let m: Self = serde_json::from_str(text)
+            .map_err(|e| DatagenError::File { path: path.to_owned(), why: format!("not {}: {e}", S::WHAT) })?;
         let (f, v, format, version) = (&m.format, m.format_version, S::FORMAT, S::FORMAT_VERSION);
         if f != format || v != version {
-            return Err(DatagenError::File { path, why: format!("format {f} v{v} is not {format} v{version}") });
+            return Err(DatagenError::File {
+                path: path.to_owned(),
+                why: format!("format {f} v{v} is not {format} v{version}"),
+            });
         }
+        m.settings
+            .validate()
+            .map_err(|e| DatagenError::File { path: path.to_owned(), why: format!("settings: {e}") })?;
         Ok(m)
     }
 

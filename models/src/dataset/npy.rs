@@ -7,8 +7,13 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, thiserror::Error)]
 pub enum NpyError {
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    /// (The I/O error is part of the message, not a source, so that an error chain
+    /// does not print it twice.)
+    #[error("{path}: {error}")]
+    Io { path: PathBuf, error: std::io::Error },
+    /// A failed write (the error names the file).
+    #[error("{0}")]
+    Write(std::io::Error),
     #[error("{path}: not a float32 .npy file we can read: {why}")]
     Format { path: PathBuf, why: String },
 }
@@ -21,18 +26,50 @@ fn temp_path(path: &Path) -> PathBuf {
     path.with_file_name(format!(".{name}.{}.{thread}.tmp", std::process::id()))
 }
 
+/// Removes temporaries of `path` left by processes that no longer run (killed
+/// mid-write): `.NAME.<pid>.<thread>.tmp` beside it whose pid has no `/proc` entry.
+/// Where `/proc` is missing nothing can be told dead, and nothing is removed.
+fn remove_stale_temporaries(path: &Path) {
+    let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else { return };
+    let dir = if dir.as_os_str().is_empty() { Path::new(".") } else { dir };
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let prefix = format!(".{}.", name.to_string_lossy());
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let file = entry.file_name();
+        let Some(rest) = file.to_str().and_then(|f| f.strip_prefix(&prefix)).and_then(|r| r.strip_suffix(".tmp"))
+        else {
+            continue;
+        };
+        let Some(pid) = rest.split('.').next().and_then(|p| p.parse::<u32>().ok()) else { continue };
+        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
+}
+
+/// `e` with what failed and on which path in its message (the kind kept).
+fn named(what: &str, path: &Path, e: std::io::Error) -> std::io::Error {
+    std::io::Error::new(e.kind(), format!("{what} {}: {e}", path.display()))
+}
+
 /// Runs `write` on a temporary path beside `path`, then renames it over `path`: a crash
 /// or Ctrl-C never leaves half a file, and the old file survives a failed write. Every
-/// file Nimbus writes goes through here.
+/// file Nimbus writes goes through here. Temporaries of `path` that a killed process
+/// left are removed first.
 pub fn write_atomically<E: From<std::io::Error>>(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<(), E>,
 ) -> Result<(), E> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)?;
+        std::fs::create_dir_all(dir).map_err(|e| named("cannot create directory", dir, e))?;
     }
+    remove_stale_temporaries(path);
     let tmp = temp_path(path);
-    let result = write(&tmp).and_then(|_| std::fs::rename(&tmp, path).map_err(E::from));
+    let result =
+        write(&tmp).and_then(|_| std::fs::rename(&tmp, path).map_err(|e| E::from(named("cannot write", path, e))));
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
@@ -42,9 +79,8 @@ pub fn write_atomically<E: From<std::io::Error>>(
 /// Writes `bytes` atomically (synced before the rename).
 pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     write_atomically(path, |tmp| {
-        let mut f = std::fs::File::create(tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()
+        let mut f = std::fs::File::create(tmp).map_err(|e| named("cannot write", path, e))?;
+        f.write_all(bytes).and_then(|_| f.sync_all()).map_err(|e| named("cannot write", path, e))
     })
 }
 
@@ -73,8 +109,7 @@ pub fn npy_bytes_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
 
 /// Writes a float32 array atomically.
 pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), NpyError> {
-    write_bytes_atomically(path, &npy_bytes_f32(shape, data))
-        .map_err(|source| NpyError::Io { path: path.to_owned(), source })
+    write_bytes_atomically(path, &npy_bytes_f32(shape, data)).map_err(NpyError::Write)
 }
 
 /// Parses a float32 `.npy` file: its shape and data.
@@ -100,9 +135,9 @@ pub fn parse_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>), String> {
     if !field("fortran_order")?.starts_with("False") {
         return Err("Fortran order is not supported".into());
     }
-    let shape_text = field("shape")?;
+    let shape_text = field("shape")?.strip_prefix('(').ok_or("the shape is not a tuple")?;
     let close = shape_text.find(')').ok_or("unterminated shape")?;
-    let shape: Vec<usize> = shape_text[1..close]
+    let shape: Vec<usize> = shape_text[..close]
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
@@ -119,13 +154,53 @@ pub fn parse_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>), String> {
 
 /// Reads a float32 `.npy` file.
 pub fn read_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>), NpyError> {
-    let bytes = std::fs::read(path).map_err(|source| NpyError::Io { path: path.to_owned(), source })?;
+    let bytes = std::fs::read(path).map_err(|error| NpyError::Io { path: path.to_owned(), error })?;
     parse_f32(&bytes).map_err(|why| NpyError::Format { path: path.to_owned(), why })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Headers the fuzzer found: a shape that is not a tuple (`'shape': )12, 25)`)
+    /// is refused, not sliced out of range.
+    #[test]
+    fn fuzz_regressions_are_refused() {
+        let bytes = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/fuzz_npy_shape.npy")).unwrap();
+        let e = parse_f32(&bytes).unwrap_err();
+        assert!(e.contains("tuple"), "{e}");
+    }
+
+    /// A temporary left by a killed process (a pid that does not run) is removed by
+    /// the next write of the same file; one of a live process, and other files' ones,
+    /// are kept; the written file has the permissions of any new file (0644 under
+    /// the usual umask 022, never 0600).
+    #[test]
+    fn stale_temporaries_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("chunk.npy");
+        // Linux pids stay below 2^22.
+        let stale = dir.path().join(".chunk.npy.4194399.ThreadId2.tmp");
+        let live = dir.path().join(format!(".chunk.npy.{}.ThreadId7.tmp", std::process::id()));
+        let other = dir.path().join(".other.npy.4194399.ThreadId2.tmp");
+        for f in [&stale, &live, &other] {
+            std::fs::write(f, b"half").unwrap();
+        }
+        write_bytes_atomically(&target, b"data").unwrap();
+        assert_eq!(std::fs::read(&target).unwrap(), b"data");
+        if Path::new("/proc/self").exists() {
+            assert!(!stale.exists(), "the dead process's temporary is still there");
+        }
+        assert!(live.exists() && other.exists());
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let reference = dir.path().join("plain");
+            std::fs::write(&reference, b"x").unwrap();
+            let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+            assert_eq!(mode(&target), mode(&reference), "an atomic write's mode differs from a plain file's");
+        }
+    }
 
     #[test]
     fn round_trip_and_alignment() {

@@ -190,6 +190,9 @@ impl DataSpec for GlobalSpec {
     const WHAT: &'static str = "a Nimbus data-set manifest";
     const TARGET_COLUMNS: [&'static str; 5] = ["L_i", "std_error", "samples", "sigma_s", "shape"];
     type Header = GlobalHeader;
+    fn validate(&self) -> Result<(), DatagenError> {
+        Self::validate(self)
+    }
     fn header(&self) -> GlobalHeader {
         GlobalHeader { light_direction: OMEGA_L.to_array(), feature_names: self.feature_names() }
     }
@@ -443,6 +446,20 @@ mod tests {
         assert!(m.complete);
         assert_eq!(files(&resumed), reference, "resuming changed the data");
 
+        // A well-formed chunk holding a NaN: merge refuses it, naming the chunk and
+        // the row; a resumed run sets it aside and makes it again.
+        let (shape, mut data) = npy::read_f32(&chunk_path(&resumed, 2)).unwrap();
+        data[7 + shape[1]] = f32::NAN;
+        npy::write_f32(&chunk_path(&resumed, 2), &shape, &data).unwrap();
+        let e = merge::<GlobalSpec>(std::slice::from_ref(&resumed), &temp_dir("nan")).unwrap_err().to_string();
+        assert!(e.contains("chunk-000002.npy") && e.contains("row 1") && e.contains("not finite"), "{e}");
+        let mut m = GlobalManifest::load(&resumed).unwrap();
+        m.complete = false;
+        m.save(&resumed).unwrap();
+        run(&spec, Shard::ALL, &resumed, 2).unwrap();
+        assert_eq!(files(&resumed), reference, "the damaged chunk was not made again");
+        assert!(crate::dataset::chunks::damaged_path(&resumed, 2).exists(), "the damaged chunk was not kept aside");
+
         // A cancelled run says how far it got and keeps what it has.
         let cancelled = temp_dir("cancelled");
         let flag = AtomicBool::new(true);
@@ -461,6 +478,21 @@ mod tests {
         }
         for row in data.features.chunks_exact(20) {
             assert!(row[4..].iter().all(|t| *t <= 0.0 && t.is_finite()));
+        }
+    }
+
+    /// A manifest whose settings are invalid (a chunk size of 0 would divide by
+    /// zero when chunks are counted; fuzzing the readers asks for this) is refused on
+    /// reading, naming the setting.
+    #[test]
+    fn manifests_with_bad_settings_are_refused() {
+        let path = Path::new("m/manifest.json");
+        let good = serde_json::to_string(&GlobalManifest::new(&tiny(), None, "test")).unwrap();
+        assert!(GlobalManifest::from_json(&good, path).is_ok());
+        for (key, bad) in [("\"chunk_size\":5", "\"chunk_size\":0"), ("\"points\":23", "\"points\":0")] {
+            assert!(good.contains(key), "{good}");
+            let e = GlobalManifest::from_json(&good.replace(key, bad), path).unwrap_err().to_string();
+            assert!(e.contains("manifest.json") && e.contains("settings"), "{e}");
         }
     }
 

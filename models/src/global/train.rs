@@ -359,10 +359,8 @@ struct CheckpointState {
 }
 
 fn save_tensors(tensors: &HashMap<String, Tensor>, path: &Path) -> Result<(), TrainError> {
-    // candle writes the file, to a temporary path that is then renamed (atomic).
-    crate::dataset::npy::write_atomically(path, |tmp| {
-        candle_core::safetensors::save(tensors, tmp).map_err(TrainError::from)
-    })
+    crate::nn::optim::save_safetensors(tensors, path)
+        .map_err(|e| TrainError::File { path: path.to_owned(), why: e.to_string() })
 }
 
 fn write_text(path: &Path, text: &str) -> Result<(), TrainError> {

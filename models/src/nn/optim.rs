@@ -1,8 +1,19 @@
 //! Training pieces both trainers share: the optimizers (SGD with momentum, Adam) and
-//! their state over candle variables, and the check of a training schedule.
+//! their state over candle variables, the check of a training schedule, and the
+//! safetensors files the weights and checkpoints go to.
 
 use candle_core::{Tensor, Var};
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::Path;
+
+/// Writes named tensors as a safetensors file, atomically, with the permissions of
+/// every other output. The file is serialized in memory: candle's own writer goes
+/// through a temporary file of mode 0600 that it leaves behind when killed.
+pub fn save_safetensors(tensors: &HashMap<String, Tensor>, path: &Path) -> std::io::Result<()> {
+    let bytes = safetensors::serialize(tensors.iter(), None).map_err(std::io::Error::other)?;
+    crate::dataset::npy::write_bytes_atomically(path, &bytes)
+}
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase", tag = "kind")]

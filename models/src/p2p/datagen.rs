@@ -180,6 +180,9 @@ impl DataSpec for P2pSpec {
     /// target).
     const TARGET_COLUMNS: [&'static str; 5] = ["T", "std_error", "samples", "distance", "T_local"];
     type Header = P2pHeader;
+    fn validate(&self) -> Result<(), DatagenError> {
+        Self::validate(self)
+    }
     fn header(&self) -> P2pHeader {
         P2pHeader {}
     }

@@ -227,10 +227,7 @@ pub fn train(
             tensors.insert(format!("v.{k}"), opt.v[k].clone());
         }
         let state = ckpt.join("state.safetensors");
-        crate::dataset::npy::write_atomically(&state, |tmp| {
-            candle_core::safetensors::save(&tensors, tmp).map_err(|e| std::io::Error::other(e.to_string()))
-        })
-        .map_err(|e| format!("{}: {e}", state.display()))?;
+        crate::nn::optim::save_safetensors(&tensors, &state).map_err(err)?;
         let st = Checkpoint { key: key.clone(), step: opt.step, history: history.clone() };
         crate::dataset::npy::write_bytes_atomically(
             &ckpt.join("state.json"),
@@ -268,10 +265,7 @@ pub fn train(
     };
     let with = |ext: &str| with_ext(out, ext);
     let weights = with(".safetensors");
-    crate::dataset::npy::write_atomically(&weights, |tmp| {
-        candle_core::safetensors::save(&net.named(), tmp).map_err(|e| std::io::Error::other(e.to_string()))
-    })
-    .map_err(|e| format!("{}: {e}", weights.display()))?;
+    crate::nn::optim::save_safetensors(&net.named(), &weights).map_err(err)?;
     let text = serde_json::to_string_pretty(&sidecar).expect("sidecar serializes");
     crate::dataset::npy::write_bytes_atomically(&with(".json"), text.as_bytes()).map_err(err)?;
     crate::dataset::npy::write_bytes_atomically(&with(".loss.csv"), csv.as_bytes()).map_err(err)?;

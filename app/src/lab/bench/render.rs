@@ -6,7 +6,7 @@ use crate::cli::common::{init_threads, progress_bar, stop_on_ctrl_c};
 use crate::output;
 use crate::progressive::render_spp;
 use crate::scene::SceneFile;
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::Args;
 use engine::{Buffer, RenderControl};
 use std::path::{Path, PathBuf};
@@ -110,7 +110,7 @@ fn write_mitsuba_bundle(
     outcome: &crate::progressive::RenderOutcome,
     threads: usize,
 ) -> Result<()> {
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    crate::output::create_dir(dir)?;
     output::write_bytes_atomically(&dir.join("cloud.vol"), &output::mitsuba_vol_bytes(scene.medium.grid()))?;
     let film = &outcome.film;
     output::write_npy_image(&dir.join("nimbus_full.npy"), film.width(), film.height(), &film.mean(Buffer::Full))?;

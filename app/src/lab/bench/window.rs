@@ -3,7 +3,7 @@
 //! memory over a long accumulation).
 
 use crate::scene::SceneFile;
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 
@@ -120,7 +120,7 @@ pub fn bench_memory(args: BenchMemoryArgs) -> Result<()> {
         spp.1
     );
     if let Some(dir) = &args.out {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        crate::output::create_dir(dir)?;
         let csv = format!("seconds,resident_mib,spp_prediction,spp_reference\n{}\n", rows.join("\n"));
         crate::output::write_atomically(&dir.join("memory.csv"), |tmp| Ok(std::fs::write(tmp, &csv)?))?;
         let points: Vec<(f64, f64)> = times.iter().zip(&rss).map(|(t, m)| (t / 60.0, *m)).collect();

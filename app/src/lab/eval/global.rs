@@ -240,7 +240,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
     let cache = args.out.join("cache");
-    std::fs::create_dir_all(&cache).with_context(|| format!("cannot create {}", cache.display()))?;
+    crate::output::create_dir(&cache)?;
     let groups: Vec<(&str, &str, String, f32)> = scenes
         .iter()
         .flat_map(|(label, preset, rhos)| {

@@ -278,7 +278,7 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
     let cache = args.out.join("cache");
-    std::fs::create_dir_all(&cache).with_context(|| format!("cannot create {}", cache.display()))?;
+    crate::output::create_dir(&cache)?;
     let per_config =
         args.spp_ref as u64 * (1 + args.k.len() as u64) + args.spp as u64 * (args.k.len() * (2 + models.len())) as u64;
     let bar = progress_bar(per_config * args.configs.len() as u64, "spp", args.run.quiet);
@@ -289,7 +289,7 @@ pub fn eval_p2p(args: &EvalP2pArgs) -> Result<Vec<P2pCell>> {
     let mut cells = vec![];
     let mut done = 0u64;
     let sheets = args.out.join("sheets");
-    std::fs::create_dir_all(&sheets)?;
+    crate::output::create_dir(&sheets)?;
     for config in &args.configs {
         let base = scene_file(args, config)?;
         let scene = Arc::new(base.build_scene(None)?);

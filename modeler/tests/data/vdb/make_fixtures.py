@@ -9,7 +9,7 @@ Run from anywhere (Debian: apt-get install python3-openvdb, which brings numpy):
 A plain `python3` works too when it is the interpreter that has pyopenvdb; if it
 cannot import pyopenvdb, the script re-runs itself under /usr/bin/python3.
 
-Five files, each with a `<name>.json` sidecar of its true contents:
+Seven files, each with a `<name>.json` sidecar of its true contents:
 
 - sphere_dense.vdb: smooth dense sphere (1 - (r/R)^2)^2, R = 30 voxels, centred on
   voxel (0, 0, 0); voxel 1/64, no translation (UniformScaleMap); blosc.
@@ -26,15 +26,25 @@ Five files, each with a `<name>.json` sidecar of its true contents:
 - half_float.vdb: wispy flattened ellipsoid saved as 16-bit half floats
   (grid.saveFloatAsHalf = True: tree type Tree_float_5_4_3_HalfFloat, metadata
   is_saved_as_half_float); voxel 0.02, translation (0, 0.3, 0); blosc.
+- half_zip.vdb: the values of half_float.vdb, saved as half floats, as a grid of
+  class unknown with zip compression (transcoded like transformed_zip.vdb).
+- half_sparse.vdb: half floats, blosc, voxel 0.01, translation (0.5, 0, -0.25): a
+  128^3 active tile (in an internal node of 32^3 entries), 8^3 active tiles and
+  partial leaves of a box, a noisy blob, three isolated voxels far apart (the active
+  box is 232 x 170 x 198), an inactive 8^3 tile and inactive voxels whose values are
+  not the background (node compression codes 2, 4 and 5: the inactive values are
+  stored as 32-bit floats inside the half-float arrays).
 
 What pyopenvdb can and cannot choose. pyopenvdb.write() has no compression argument
 (OpenVDB's io::File::setCompression is not exposed): it always writes blosc + active
 mask, the library default. OpenVDB also never zips fog volumes (Archive::
-setGridCompression drops zip for them). So transformed_zip.vdb is written by pyopenvdb
-with blosc, as a grid of class unknown, and then transcoded here: every value chunk
+setGridCompression drops zip for them). So transformed_zip.vdb and half_zip.vdb are
+written by pyopenvdb with blosc, as grids of class unknown, and then transcoded here:
+every value chunk
 is unpacked with the system's libblosc (the one OpenVDB links) and packed again as
 OpenVDB's zipToStream does (zlib at the default level, stored raw with a negative
-size when zlib does not shrink it), the grid's compression flags become zip + active
+size when zlib does not shrink it; half floats as 16-bit values, and an empty
+half-float array, for which io::HalfWriter writes nothing, stays empty), the grid's compression flags become zip + active
 mask, its file_compression metadata and the per-leaf chunk sizes in its delayed-load
 metadata (file_delayed_load) follow, and the grid offsets are rewritten. The
 result is then read back by OpenVDB and checked value by value against the blosc file.
@@ -59,8 +69,9 @@ translation, index_to_world: row-major 4x4, world = M @ [i, j, k, 1], checked ag
 OpenVDB's indexToWorld), values_at (value and active state at probe coordinates,
 chosen from the data: the first active value equal to the maximum, the active voxel
 nearest 0.3, the rounded centroid, the point halfway from the centroid to the box's
-maximum corner, the box's minimum corner, a point outside the box, and a point inside
-the first tile where there are tiles) and metadata (the grid's metadata as stored).
+maximum corner, the box's minimum corner, a point outside the box, a point inside
+the first tile where there are tiles, and points a fixture names: isolated voxels,
+inactive voxels with values) and metadata (the grid's metadata as stored).
 """
 
 import argparse
@@ -233,14 +244,68 @@ def multi_grid():
     return [t, d], meta
 
 
-def half_float():
+def half_float(grid_class=vdb.GridClass.FOG_VOLUME):
     lo, hi = (-34, -12, -24), (34, 12, 24)
     i, j, k = lattice(lo, hi)
     e = np.sqrt((i / 32.0) ** 2 + (j / 11.0) ** 2 + (k / 23.0) ** 2)
     n = fbm(i / 6.0, j / 4.0, k / 6.0, seed=59, octaves=5)
     v = 0.9 * clip01(1.5 * ((1.0 - e) + 0.7 * (n - 0.5)))
     v = np.where(v >= 0.01, v, 0.0)
-    g = grid_from(v, lo, "density", 0.02, (0.0, 0.3, 0.0))
+    g = grid_from(v, lo, "density", 0.02, (0.0, 0.3, 0.0), grid_class=grid_class)
+    g.saveFloatAsHalf = True
+    return [g], {"generator": GENERATOR}
+
+
+def half_zip():
+    return half_float(grid_class=vdb.GridClass.UNKNOWN)
+
+
+# Points of half_sparse.vdb the sidecar probes besides the data-chosen ones.
+HALF_SPARSE_ISOLATED = [((-100, -40, -70), 0.3), ((131, 129, -2), 0.05), ((60, -20, 127), 0.8)]
+HALF_SPARSE_PROBES = [
+    [-100, -40, -70], [131, 129, -2], [60, -20, 127],  # isolated active voxels
+    [0, 0, 0], [127, 127, 127], [64, 100, 3],  # inside the 128^3 tile
+    [-66, 7, 9], [-60, 4, 20],  # a partial leaf of the box, an 8^3 tile of it
+    [-125, -3, -5],  # the inactive 8^3 tile (value 0.25)
+    [-101, 18, -4], [-100, 20, -2],  # leaf with inactive voxels all 0.5 (code 2); its active voxel
+    [-93, 19, -7], [-92, 19, -7],  # leaf with inactive 0.5 and 0.25 (code 5)
+    [-30, -20, -40],  # inside the blob
+]
+
+
+def half_sparse():
+    g = vdb.FloatGrid()
+    g.name = "density"
+    g.gridClass = vdb.GridClass.FOG_VOLUME
+    # A noisy blob from an array: leaves of voxels.
+    lo, hi = (-40, -30, -60), (-1, -7, -21)
+    i, j, k = lattice(lo, hi)
+    c = [(a + b) / 2.0 for a, b in zip(lo, hi)]
+    d = np.sqrt(((i - c[0]) / 20.0) ** 2 + ((j - c[1]) / 12.0) ** 2 + ((k - c[2]) / 20.0) ** 2)
+    n = fbm(i / 5.0, j / 5.0, k / 5.0, seed=71)
+    v = 0.85 * clip01(1.6 * ((1.0 - d) + 0.5 * (n - 0.5)))
+    g.copyFromArray(np.where(v >= 0.01, v, 0.0).astype(np.float32), ijk=lo, tolerance=0)
+    # sparseFill makes tiles at the largest level that fits: one 128^3 tile (an entry of
+    # an internal node of 32^3 entries), and 8^3 tiles plus partial leaves for the box.
+    g.fill((0, 0, 0), (127, 127, 127), 0.375, active=True)
+    g.fill((-66, 0, 8), (-41, 15, 31), 0.6, active=True)
+    acc = g.getAccessor()
+    for ijk, value in HALF_SPARSE_ISOLATED:
+        acc.setValueOn(ijk, value)
+    # Inactive values other than the background: an inactive tile, a leaf whose
+    # inactive voxels are all 0.5 (one active voxel), one with inactive 0.5 and 0.25,
+    # and blob voxels switched off with value 0.5 (inactive values 0 and 0.5).
+    g.fill((-128, -8, -8), (-121, -1, -1), 0.25, active=False)
+    g.fill((-104, 16, -8), (-97, 23, -1), 0.5, active=False)
+    acc.setValueOn((-100, 20, -2), 0.7)
+    g.fill((-96, 16, -8), (-89, 23, -1), 0.5, active=False)
+    acc.setValueOn((-90, 22, -3), 0.45)
+    acc.setValueOff((-93, 19, -7), 0.25)
+    for ijk in ((-30, -20, -40), (-25, -18, -35), (-12, -10, -30)):
+        acc.setValueOff(ijk, 0.5)
+    t = vdb.createLinearTransform(0.01)
+    t.translate((0.5, 0.0, -0.25))
+    g.transform = t
     g.saveFloatAsHalf = True
     return [g], {"generator": GENERATOR}
 
@@ -265,7 +330,21 @@ FIXTURES = [
      "Wispy flattened ellipsoid with strong fBm; saved as 16-bit half floats (grid metadata "
      "is_saved_as_half_float = true; values in the sidecar are the half-rounded ones read back); "
      "voxel 0.02, translation (0,0.3,0); blosc."),
+    ("half_zip", half_zip,
+     "The values of half_float.vdb saved as 16-bit half floats, grid class unknown, ZIP + "
+     "active-mask compression (written by pyopenvdb with blosc, value chunks re-packed with "
+     "zlib as OpenVDB's zipToStream does); voxel 0.02, translation (0,0.3,0)."),
+    ("half_sparse", half_sparse,
+     "Saved as 16-bit half floats; blosc; voxel 0.01, translation (0.5,0,-0.25): a 128^3 active "
+     "tile, a box of 8^3 active tiles and partial leaves, a noisy blob, three isolated voxels far "
+     "apart, an inactive 8^3 tile and inactive voxels with non-background values (node "
+     "compression codes 2, 4 and 5)."),
 ]
+
+# Files transcoded from blosc to zip, files saved as half floats, and extra probes.
+ZIPPED = ("transformed_zip", "half_zip")
+HALF = ("half_float", "half_zip", "half_sparse")
+EXTRA_PROBES = {"half_sparse": HALF_SPARSE_PROBES}
 
 
 # ------------------------------------------------------------------ reading the file header
@@ -415,18 +494,19 @@ def popcount(mask):
 class ZipTranscoder:
     """Copies one grid's tree (Tree_float_5_4_3, file version 224, as io::File writes
     it) with each compressed value array re-packed from blosc to zip; records each
-    leaf buffer's chunk size (8-byte size field + payload) for the delayed-load
-    metadata."""
+    leaf buffer's chunk size (8-byte size field + payload, nothing for an empty
+    half-float array) for the delayed-load metadata. With `half`, the value arrays
+    hold 16-bit halves (inactive values, background and root tiles stay 32-bit)."""
 
-    def __init__(self, r, flags):
-        self.r, self.flags, self.out = r, flags, bytearray()
+    def __init__(self, r, flags, half):
+        self.r, self.flags, self.half, self.out = r, flags, half, bytearray()
         self.leaves, self.old_chunks, self.new_chunks = [], [], []
 
     def copy(self, n):
         self.out += self.r.take(n)
 
     def values(self, n, active):
-        """One io::writeCompressedValues array of n floats, `active` of them active;
+        """One io::writeCompressedValues array of n values, `active` of them active;
         returns (old, new) chunk sizes."""
         meta = self.r.u8()
         self.out.append(meta)
@@ -437,7 +517,9 @@ class ZipTranscoder:
         if meta in (3, 4, 5):
             self.copy(n // 8)  # selection mask
         count = active if (self.flags & COMPRESS_ACTIVE_MASK and meta != NO_MASK_AND_ALL_VALS) else n
-        nbytes = 4 * count
+        if self.half and count == 0:
+            return 0, 0  # io::HalfWriter writes nothing, not even a chunk size
+        nbytes = (2 if self.half else 4) * count
         size = self.r.i64()
         if size <= 0:
             assert -size == nbytes, "raw chunk of %d bytes where %d are due" % (-size, nbytes)
@@ -534,7 +616,7 @@ def transcode_to_zip(src, dst):
     out = bytearray(data[:h["descriptors_at"]])
     out += struct.pack("<i", len(h["grid_descriptors"]))
     for d in h["grid_descriptors"]:
-        assert d["type"] == "Tree_float_5_4_3" and not d["instance_parent"], d
+        assert d["type"] in ("Tree_float_5_4_3", "Tree_float_5_4_3_HalfFloat") and not d["instance_parent"], d
         write_string(out, d["name"])
         write_string(out, d["type"])
         write_string(out, d["instance_parent"])
@@ -548,7 +630,7 @@ def transcode_to_zip(src, dst):
         meta = r.metadata()
         map_type = r.string()
         transform = r.take(MAP_BYTES[map_type])
-        t = ZipTranscoder(r, old_flags)
+        t = ZipTranscoder(r, old_flags, d["type"].endswith("_HalfFloat"))
         t.topology()
         assert r.pos == d["block_pos"], "topology ends at %d, buffers start at %d" % (r.pos, d["block_pos"])
         topology_len = len(t.out)
@@ -605,7 +687,7 @@ def transform_json(t, d):
     }
 
 
-def grid_json(g, d):
+def grid_json(g, d, extra_probes=()):
     count = tiles = 0
     total = total_sq = 0.0
     ci = [0.0, 0.0, 0.0]
@@ -646,6 +728,7 @@ def grid_json(g, d):
     candidates = [list(first_max), list(nearest[0]), centre_probe, off_axis, lo, outside]
     if first_tile is not None:
         candidates.append([first_tile[0] + 3, first_tile[1] + 5, first_tile[2] + 2])
+    candidates += [list(p) for p in extra_probes]
     probes = []
     for p in candidates:
         if p not in probes:
@@ -699,7 +782,7 @@ def sidecar(path, name, description):
                              for d in h["grid_descriptors"]],
         "file_metadata": {k: plain(v) for k, v in sorted(file_meta.items())},
         "grid_names": [g.name for g in grids],
-        "grids": [grid_json(g, d) for g, d in zip(grids, h["grid_descriptors"])],
+        "grids": [grid_json(g, d, EXTRA_PROBES.get(name, ())) for g, d in zip(grids, h["grid_descriptors"])],
         "file": name + ".vdb",
         "description": description,
         "written_by": "OpenVDB %s (pyopenvdb, Debian python3-openvdb)" % LIB,
@@ -715,7 +798,7 @@ def main():
     for name, make, description in FIXTURES:
         grids, file_meta = make()
         path = os.path.join(out_dir, name + ".vdb")
-        if name == "transformed_zip":
+        if name in ZIPPED:
             tmp = path + ".blosc.tmp"
             vdb.write(tmp, grids, metadata=file_meta)
             transcode_to_zip(tmp, path)
@@ -727,9 +810,10 @@ def main():
         fix_uuid(path, name)
         truth = sidecar(path, name, description)
         for d, g in zip(header(open(path, "rb").read())["grid_descriptors"], truth["grids"]):
-            want = COMPRESS_ZIP if name == "transformed_zip" else COMPRESS_BLOSC
+            want = COMPRESS_ZIP if name in ZIPPED else COMPRESS_BLOSC
             assert d["compression_flags"] & (COMPRESS_ZIP | COMPRESS_BLOSC) == want, (name, d)
-            assert g["saved_as_half"] == (name == "half_float"), (name, g["name"])
+            assert g["saved_as_half"] == (name in HALF), (name, g["name"])
+            assert d["type"].endswith("_HalfFloat") == (name in HALF), (name, d)
         if name == "cloud_sparse":
             assert truth["grids"][0]["active_tile_count"] > 0, "the cloud's core must be stored as tiles"
         with open(os.path.join(out_dir, name + ".json"), "w") as f:
