@@ -22,6 +22,8 @@
 //! ```
 
 use crate::cloud::Builtin;
+use engine::field::SunTransmittance;
+use engine::integrator::preview::{MultipleScattering, Preview};
 use engine::{
     Camera, DensityGrid, InScatterPredictor, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene, Sky, Sun,
 };
@@ -208,7 +210,9 @@ impl Default for CameraDesc {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RenderDesc {
-    /// reference | predict. Default reference.
+    /// reference | predict | preview. Default reference. `preview` is the instant
+    /// preview: ray marching with single scattering from a precomputed sun
+    /// transmittance and the higher orders from `render.preview`.
     pub mode: String,
     /// Prediction probability for mode = "predict", (0, 1]. Default 0.25.
     pub p: f32,
@@ -239,7 +243,46 @@ pub struct RenderDesc {
     /// BDPT prediction. Default 8 (see engine::bdpt).
     #[serde(skip_serializing_if = "is_default_extension_samples")]
     pub extension_samples: u32,
+    /// The preview's higher orders: "learned" (the global model, `render.model`, on a
+    /// lattice for the current sun and camera; the default) or "octaves" (Wrenninge
+    /// et al. 2013).
+    #[serde(skip_serializing_if = "is_learned")]
+    pub preview: String,
+    /// Nodes per axis of the learned preview's multiple-scattering lattice, 2 ..= 128.
+    /// Default 48.
+    #[serde(skip_serializing_if = "is_default_preview_nodes")]
+    pub preview_nodes: u32,
+    /// The octave approximation: octaves N (terms 0 .. N-1, 1 ..= 9, default 3) and
+    /// its factors a (optical depth), b (amplitude), c (mean cosine), each in (0, 1],
+    /// default 0.5.
+    #[serde(skip_serializing_if = "is_default_octaves")]
+    pub octaves: u32,
+    #[serde(skip_serializing_if = "is_half")]
+    pub octave_a: f32,
+    #[serde(skip_serializing_if = "is_half")]
+    pub octave_b: f32,
+    #[serde(skip_serializing_if = "is_half")]
+    pub octave_c: f32,
 }
+
+fn is_learned(s: &str) -> bool {
+    s == "learned"
+}
+
+fn is_default_preview_nodes(n: &u32) -> bool {
+    *n == DEFAULT_PREVIEW_NODES
+}
+
+fn is_default_octaves(n: &u32) -> bool {
+    *n == 3
+}
+
+fn is_half(v: &f32) -> bool {
+    *v == 0.5
+}
+
+/// Nodes per axis of the learned preview's lattice by default.
+pub const DEFAULT_PREVIEW_NODES: u32 = 48;
 
 fn is_default_extension_samples(n: &u32) -> bool {
     *n == engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES
@@ -268,6 +311,12 @@ impl Default for RenderDesc {
             r: engine::integrator::bdpt::Prediction::DEFAULT_R,
             candidates: engine::integrator::bdpt::Prediction::DEFAULT_CANDIDATES,
             extension_samples: engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
+            preview: "learned".into(),
+            preview_nodes: DEFAULT_PREVIEW_NODES,
+            octaves: 3,
+            octave_a: 0.5,
+            octave_b: 0.5,
+            octave_c: 0.5,
         }
     }
 }
@@ -440,11 +489,32 @@ impl SceneFile {
             return Err(range_err("camera.height", c.height, "1 ..= 16384"));
         }
         match self.render.mode.as_str() {
-            "reference" | "predict" => {}
+            "reference" | "predict" | "preview" => {}
             other => {
                 return Err(SceneError::Invalid(format!(
-                    "render.mode = \"{other}\" is unknown; choose reference or predict"
+                    "render.mode = \"{other}\" is unknown; choose reference, predict or preview"
                 )));
+            }
+        }
+        if !matches!(self.render.preview.as_str(), "learned" | "octaves") {
+            return Err(SceneError::Invalid(format!(
+                "render.preview = \"{}\" is unknown; choose learned or octaves",
+                self.render.preview
+            )));
+        }
+        if !(2..=128).contains(&self.render.preview_nodes) {
+            return Err(range_err("render.preview_nodes", self.render.preview_nodes, "2 ..= 128"));
+        }
+        if !(1..=9).contains(&self.render.octaves) {
+            return Err(range_err("render.octaves", self.render.octaves, "1 ..= 9"));
+        }
+        for (key, v) in [
+            ("render.octave_a", self.render.octave_a),
+            ("render.octave_b", self.render.octave_b),
+            ("render.octave_c", self.render.octave_c),
+        ] {
+            if !(v > 0.0 && v <= 1.0) {
+                return Err(range_err(key, v, "(0, 1]"));
             }
         }
         if !matches!(self.render.integrator.as_str(), "path" | "bdpt") {
@@ -607,6 +677,9 @@ impl SceneFile {
         max_nodes: u32,
         cache: &mut PredictorCache,
     ) -> Result<IntegratorSetup, SceneError> {
+        if self.render.mode == "preview" {
+            return self.preview(scene, max_nodes, cache);
+        }
         if self.render.mode != "predict" {
             return Ok(IntegratorSetup { integrator: self.integrator_with(None)?, warning: None });
         }
@@ -640,6 +713,61 @@ impl SceneFile {
 }
 
 impl SceneFile {
+    /// The octave approximation of `render.octaves` and its factors.
+    pub fn octaves(&self) -> MultipleScattering {
+        let r = &self.render;
+        MultipleScattering::Octaves { octaves: r.octaves, a: r.octave_a, b: r.octave_b, c: r.octave_c }
+    }
+
+    /// The instant preview of `scene`: the sun's transmittance (reused from `cache`
+    /// for the same cloud, rho and sun) and the higher orders by `render.preview`; the
+    /// learned ones use the global model bound with a depth field of at most
+    /// `max_nodes` nodes per axis (cached as in prediction mode) on a lattice of
+    /// `render.preview_nodes`. A model that cannot be loaded falls back to the octave
+    /// approximation, with a warning.
+    fn preview(
+        &self,
+        scene: &Scene,
+        max_nodes: u32,
+        cache: &mut PredictorCache,
+    ) -> Result<IntegratorSetup, SceneError> {
+        let err = |e: String| SceneError::Invalid(format!("render: {e}"));
+        let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("the preview needs a sun".into()))?;
+        let key = PredictorKey { model: None, ..PredictorKey::new(self, scene, 0) };
+        let field = match &cache.sun {
+            Some((k, f)) if *k == key => f.clone(),
+            _ => {
+                let f = Arc::new(SunTransmittance::build(&scene.medium, sun, SunTransmittance::DEFAULT_MAX_NODES));
+                cache.sun = Some((key, f.clone()));
+                f
+            }
+        };
+        let mut warning = None;
+        let multiple = if self.render.preview == "octaves" {
+            self.octaves()
+        } else {
+            let mut predicting = self.clone();
+            predicting.render.mode = "predict".into();
+            let setup = predicting.integrator_cached(scene, max_nodes, cache)?;
+            match setup.integrator.predictor() {
+                Some(predictor) => MultipleScattering::Lattice(Arc::new(Preview::learned_lattice(
+                    scene,
+                    &field,
+                    predictor.as_ref(),
+                    scene.camera.position(),
+                    self.render.preview_nodes,
+                ))),
+                None => {
+                    warning = setup.warning.map(|w| format!("{w}; the preview uses the octave approximation"));
+                    self.octaves()
+                }
+            }
+        };
+        let preview = Preview::new(field, multiple, Preview::default_step(&scene.medium)).map_err(err)?;
+        let integrator = Integrator::preview(self.settings(), Arc::new(preview)).map_err(|e| err(e.to_string()))?;
+        Ok(IntegratorSetup { integrator, warning })
+    }
+
     /// Where `render.p2p_model` points (resolved against the scene file), if set.
     pub fn p2p_model_path(&self) -> Option<PathBuf> {
         self.resolve(self.render.p2p_model.as_ref()?)
@@ -708,6 +836,8 @@ struct PredictorKey {
 pub struct PredictorCache {
     last: Option<(PredictorKey, Arc<BoundGlobalModel>)>,
     p2p: Option<(PredictorKey, Arc<BoundP2pModel>)>,
+    /// The preview's sun transmittance (keyed by cloud, rho and sun; no model).
+    sun: Option<(PredictorKey, Arc<SunTransmittance>)>,
 }
 
 impl PredictorKey {

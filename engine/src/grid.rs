@@ -53,6 +53,11 @@ impl Bounds3 {
         0.5 * (self.min + self.max)
     }
 
+    /// Whether `p` lies in the box (faces included).
+    pub fn contains(&self, p: Vec3) -> bool {
+        p.cmpge(self.min).all() && p.cmple(self.max).all()
+    }
+
     /// Slab test: the parametric interval of the ray o + t d inside the box, clipped to
     /// [t_min, t_max]; None if it misses. `inv_d` is 1 / d per component.
     #[inline]

@@ -8,11 +8,12 @@
 //! prediction between its two subpaths).
 //!
 //! Modules, bottom up: [`rng`], [`sampling`], [`stats`]; [`phase`], [`grid`],
-//! [`medium`], [`light`], [`camera`], [`scene`]; [`predictor`]; [`integrator`] (path
+//! [`medium`], [`light`], [`camera`], [`scene`], [`field`]; [`predictor`]; [`integrator`] (path
 //! tracing, BDPT, the point-to-point estimator); [`film`] and [`render`] (progressive
 //! tiles and passes).
 
 pub mod camera;
+pub mod field;
 pub mod film;
 pub mod grid;
 pub mod integrator;

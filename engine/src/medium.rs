@@ -72,6 +72,16 @@ impl MajorantGrid {
         self.dims
     }
 
+    /// The majorant density of the cell that holds `p` (0 outside the grid's support).
+    pub fn at(&self, p: Vec3) -> f32 {
+        if !self.bounds.contains(p) {
+            return 0.0;
+        }
+        let q = (p - self.bounds.min) * self.inv_cell_size;
+        let c = IVec3::new(floor_i32(q.x), floor_i32(q.y), floor_i32(q.z)).clamp(IVec3::ZERO, self.dims.as_ivec3() - 1);
+        self.cell(c)
+    }
+
     #[inline]
     fn cell(&self, c: IVec3) -> f32 {
         self.max_density[(c.x as u32 + self.dims.x * (c.y as u32 + self.dims.y * c.z as u32)) as usize]
@@ -260,6 +270,10 @@ impl Medium {
     }
     pub fn phase(&self) -> PhaseFunction {
         self.phase
+    }
+    /// The largest density (before rho) around `p`: its majorant cell's.
+    pub fn majorant_density_at(&self, p: Vec3) -> f32 {
+        self.majorant.at(p)
     }
     /// Where sigma_t can be non-zero.
     pub fn bounds(&self) -> Bounds3 {

@@ -186,3 +186,35 @@ fn memory_bench_writes_its_samples() {
     let e = format!("{:#}", nimbus(&["bench", "memory", "--seconds", "0"]).unwrap_err());
     assert!(e.contains("positive"), "{e}");
 }
+
+/// `--preview` renders the instant preview (learned and octaves) into the same
+/// layered EXR; `--time-limit` stops a render after its seconds and still writes the
+/// finished passes; bad values are refused.
+#[test]
+fn preview_and_time_limit() {
+    let guard = temp_dir("preview");
+    let dir = guard.path().to_path_buf();
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, SCENE.replace("radiance = 0.05", "radiance = 0.0")).unwrap();
+    for which in ["learned", "octaves"] {
+        let exr = dir.join(format!("{which}.exr"));
+        nimbus(&["render", s(&scene), "--preview", which, "--spp", "2", "--out", s(&exr), "--quiet"]).unwrap();
+        let (_, _, layers) = read_exr(&exr).unwrap();
+        let layer = |n: &str| layers.iter().find(|l| l.name == n).unwrap().rgb.clone();
+        let (low, high) = (layer("low"), layer("high"));
+        assert!(low.iter().any(|p| p[0] > 0.0), "{which}: single scattering");
+        assert!(high.iter().any(|p| p[0] > 0.0), "{which}: the higher orders");
+    }
+    let e = format!(
+        "{:#}",
+        nimbus(&["render", s(&scene), "--preview", "guess", "--out", s(&dir.join("x.exr"))]).unwrap_err()
+    );
+    assert!(e.contains("render.preview") && e.contains("octaves"), "{e}");
+    let exr = dir.join("timed.exr");
+    let t = std::time::Instant::now();
+    nimbus(&["render", s(&scene), "--time-limit", "1.5", "--out", s(&exr), "--quiet"]).unwrap();
+    let took = t.elapsed().as_secs_f64();
+    assert!(exr.exists() && took < 30.0, "a 1.5 s time limit took {took:.1} s");
+    let e = format!("{:#}", nimbus(&["render", s(&scene), "--time-limit=-1", "--out", s(&exr)]).unwrap_err());
+    assert!(e.contains("--time-limit"), "{e}");
+}

@@ -8,6 +8,7 @@ use crate::progressive::render_spp;
 use crate::scene::SceneFile;
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use engine::integrator::preview::MultipleScattering;
 use engine::{Buffer, RenderControl};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -16,9 +17,13 @@ use std::sync::Arc;
 pub struct RenderArgs {
     /// Scene file (TOML).
     pub scene: PathBuf,
-    /// Samples per pixel.
-    #[arg(long, default_value_t = 64)]
-    pub spp: u32,
+    /// Samples per pixel (default 64; with --time-limit, as many as fit).
+    #[arg(long)]
+    pub spp: Option<u32>,
+    /// Render for at most this many seconds (counted from the first pass), then
+    /// write what is done, as Ctrl-C does.
+    #[arg(long, value_name = "SECONDS")]
+    pub time_limit: Option<f64>,
     /// Override the scene's k (first order of the high-order buffer).
     #[arg(long)]
     pub k: Option<u32>,
@@ -51,6 +56,12 @@ pub struct RenderArgs {
     /// Full light transport, no prediction (overrides a scene's render.mode = "predict").
     #[arg(long, conflicts_with = "predict")]
     pub reference: bool,
+    /// The instant preview: ray marching with single scattering from a precomputed
+    /// sun transmittance and the higher orders learned (the global model on a lattice,
+    /// the default) or from the octave approximation.
+    #[arg(long, value_name = "learned|octaves", num_args = 0..=1, default_missing_value = "learned",
+          conflicts_with_all = ["predict", "reference"])]
+    pub preview: Option<String>,
     /// Prediction probability p in (0, 1] (Russian roulette on the prediction).
     #[arg(long)]
     pub p: Option<f32>,
@@ -90,9 +101,15 @@ pub fn render(args: RenderArgs) -> Result<()> {
     let threads = init_threads(args.run.threads)?;
     let tone = ToneMap::from_name(&args.tonemap)
         .with_context(|| format!("--tonemap {}: choose filmic or clamp", args.tonemap))?;
-    if args.spp == 0 {
+    if args.spp == Some(0) {
         bail!("--spp must be at least 1");
     }
+    if let Some(t) = args.time_limit {
+        if !(t > 0.0 && t.is_finite()) {
+            bail!("--time-limit must be a positive number of seconds, got {t}");
+        }
+    }
+    let spp = args.spp.unwrap_or(if args.time_limit.is_some() { u32::MAX } else { 64 });
     if !args.exposure.is_finite() {
         bail!("--exposure must be a finite number of stops, got {}", args.exposure);
     }
@@ -117,6 +134,10 @@ pub fn render(args: RenderArgs) -> Result<()> {
     }
     if args.reference {
         file.render.mode = "reference".into();
+    }
+    if let Some(which) = &args.preview {
+        file.render.mode = "preview".into();
+        file.render.preview = which.clone();
     }
     if let Some(p) = args.p {
         file.render.p = p;
@@ -169,6 +190,13 @@ pub fn render(args: RenderArgs) -> Result<()> {
         integrator = engine::Integrator::new(settings, Some(pred))?;
     }
     let mode = match integrator.settings().mode {
+        _ if integrator.preview_state().is_some() => match integrator.preview_state().map(|p| p.multiple()) {
+            Some(MultipleScattering::Lattice(l)) => format!("preview (learned, lattice {})", l.nodes()),
+            Some(MultipleScattering::Octaves { octaves, a, b, c }) => {
+                format!("preview (octaves {octaves}, a {a}, b {b}, c {c})")
+            }
+            _ => "preview (single scattering)".to_string(),
+        },
         engine::Mode::Reference if matches!(integrator.technique(), engine::Technique::Bdpt(_)) => {
             "reference (BDPT)".to_string()
         }
@@ -184,8 +212,23 @@ pub fn render(args: RenderArgs) -> Result<()> {
             None => format!("predict (k {}, p {p})", integrator.settings().k),
         },
     };
-    let bar = progress_bar(args.spp as u64, "spp", args.run.quiet);
-    let outcome = render_spp(scene.clone(), integrator, args.spp, &control, |done| bar.set_position(done as u64))?;
+    let bar = match args.time_limit {
+        // Counting passes against no fixed total: a spinner with the pass count.
+        Some(_) if args.spp.is_none() => {
+            let bar = progress_bar(0, "spp", args.run.quiet);
+            bar.set_length(0);
+            bar
+        }
+        _ => progress_bar(spp as u64, "spp", args.run.quiet),
+    };
+    if let Some(limit) = args.time_limit {
+        let c = control.clone();
+        std::thread::Builder::new().name("nimbus-time-limit".into()).spawn(move || {
+            std::thread::sleep(std::time::Duration::from_secs_f64(limit));
+            c.request_stop();
+        })?;
+    }
+    let outcome = render_spp(scene.clone(), integrator, spp, &control, |done| bar.set_position(done as u64))?;
     bar.finish_and_clear();
     let film = &outcome.film;
     if film.spp() == 0 {

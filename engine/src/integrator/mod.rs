@@ -7,6 +7,8 @@
 //!   a [`TransportPredictor`] between the two subpaths (thesis section 6.4);
 //! - [`p2p`]: the point-to-point transport estimator (thesis eqs. 6.1-6.2), BDPT's
 //!   extension of close pairs and the models' ground truth;
+//! - [`preview`]: the instant preview, ray marching with a precomputed sun
+//!   transmittance and multiple scattering from a lattice or the octave approximation;
 //! - [`base`]: render settings, the order-split [`PathSample`], Russian roulette.
 //!
 //! Every sample's contribution is split by scattering order into the buffers of
@@ -18,6 +20,7 @@ pub mod base;
 pub mod bdpt;
 pub mod p2p;
 pub mod path;
+pub mod preview;
 
 pub use base::{MisHeuristic, Mode, PathSample, RenderSettings};
 
@@ -44,6 +47,8 @@ pub enum IntegratorError {
     BdptPredict,
     #[error("{0}")]
     BadBdpt(String),
+    #[error("the preview technique needs its fields (Integrator::preview)")]
+    NoPreview,
 }
 
 /// The light transport algorithm.
@@ -53,6 +58,8 @@ pub enum Technique {
     PathTracing,
     /// Volumetric bidirectional path tracing ([`bdpt`]).
     Bdpt(bdpt::BdptSettings),
+    /// The instant preview: ray marching with precomputed fields ([`preview`]).
+    Preview,
 }
 
 #[derive(Clone)]
@@ -62,6 +69,8 @@ pub struct Integrator {
     technique: Technique,
     /// BDPT's prediction mode (thesis 6.4), set by [`Integrator::bdpt_prediction`].
     transport: Option<bdpt::Prediction>,
+    /// The preview's fields, set by [`Integrator::preview`].
+    preview: Option<Arc<preview::Preview>>,
 }
 
 impl std::fmt::Debug for Integrator {
@@ -71,6 +80,7 @@ impl std::fmt::Debug for Integrator {
             .field("predictor", &self.predictor.as_ref().map(|p| p.name().to_string()))
             .field("technique", &self.technique)
             .field("transport", &self.transport)
+            .field("preview", &self.preview.as_ref().map(|p| p.multiple().clone()))
             .finish()
     }
 }
@@ -91,7 +101,7 @@ impl Integrator {
                 return Err(IntegratorError::NoPredictor);
             }
         }
-        Ok(Integrator { settings, predictor, technique: Technique::PathTracing, transport: None })
+        Ok(Integrator { settings, predictor, technique: Technique::PathTracing, transport: None, preview: None })
     }
 
     /// BDPT with prediction between the subpaths (thesis 6.4): `settings.mode` must be
@@ -120,7 +130,32 @@ impl Integrator {
             extension_samples: bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
         };
         prediction.validate().map_err(IntegratorError::BadBdpt)?;
-        Ok(Integrator { settings, predictor: None, technique: Technique::Bdpt(b), transport: Some(prediction) })
+        Ok(Integrator {
+            settings,
+            predictor: None,
+            technique: Technique::Bdpt(b),
+            transport: Some(prediction),
+            preview: None,
+        })
+    }
+
+    /// The instant preview with `preview`'s fields ([`preview`]): its buffers split
+    /// as k = 2 (low = single scattering, high = the higher orders), whatever
+    /// `settings.k`; `settings.mode` is not used.
+    pub fn preview(settings: RenderSettings, preview: Arc<preview::Preview>) -> Result<Self, IntegratorError> {
+        let settings = RenderSettings { k: 2, mode: Mode::Reference, ..settings };
+        Ok(Integrator {
+            settings,
+            predictor: None,
+            technique: Technique::Preview,
+            transport: None,
+            preview: Some(preview),
+        })
+    }
+
+    /// The preview's fields, in that technique.
+    pub fn preview_state(&self) -> Option<&Arc<preview::Preview>> {
+        self.preview.as_ref()
     }
 
     /// BDPT prediction with `m` light subpath candidates per camera end vertex (see
@@ -165,6 +200,11 @@ impl Integrator {
                     return Err(IntegratorError::NoPredictor);
                 }
                 self.transport = None;
+            }
+            Technique::Preview => {
+                if self.preview.is_none() {
+                    return Err(IntegratorError::NoPreview);
+                }
             }
         }
         self.technique = technique;
@@ -244,6 +284,9 @@ impl Integrator {
     ) -> PathSample {
         if let Technique::Bdpt(b) = &self.technique {
             return bdpt::trace(&self.settings, b, self.transport.as_ref(), scene, o, d, rng, pool, deferred);
+        }
+        if let (Technique::Preview, Some(p)) = (&self.technique, &self.preview) {
+            return p.trace(scene, o, d, rng);
         }
         path::trace(&self.settings, self.predictor.as_deref(), scene, o, d, rng)
     }

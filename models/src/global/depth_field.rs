@@ -9,14 +9,9 @@
 //! support, node-major, and a prediction reads it by trilinear interpolation: 8 nodes
 //! times n_D contiguous floats, a few hundred nanoseconds.
 //!
-//! Construction, per direction d (in parallel over directions): sweep the lattice
-//! slice by slice along d's dominant axis a, starting from the slice where rays along
-//! d leave. A node x of slice s sees the next slice at y = x + h d, h = spacing_a /
-//! |d_a|; tau(x) = integral of sigma_t over [x, y] (midpoint rule, steps of at most
-//! one grid voxel) + tau(y), with tau(y) interpolated bilinearly in the slice already
-//! done, and 0 where y has left the support (a ray that leaves the support box never
-//! comes back: the density is zero outside). The cost is O(nodes * n_D * few lookups),
-//! about a second on two cores at 64^3 nodes and n_D = 64.
+//! Construction: per direction (in parallel over directions), the engine's slice
+//! sweep [`engine::field::optical_depth_sweep`]. The cost is O(nodes * n_D * few
+//! lookups), about a second on two cores at 64^3 nodes and n_D = 64.
 //!
 //! The bilinear reads add a little numerical diffusion across d (the upstream value is
 //! an average of its four neighbours); `tests` bounds the difference from direct ray
@@ -24,7 +19,7 @@
 
 use super::directions::LightFrame;
 use engine::Medium;
-use engine::grid::Bounds3;
+use engine::field::optical_depth_sweep;
 use glam::{UVec3, Vec3};
 use rayon::prelude::*;
 
@@ -53,7 +48,7 @@ impl DepthField {
         let spacing = support.extent() / (n - UVec3::ONE).as_vec3();
         let nodes = (n.x * n.y * n.z) as usize;
         let per_dir: Vec<Vec<f32>> =
-            dirs.par_iter().map(|&d| sweep(medium, support, n, spacing, d.normalize())).collect();
+            dirs.par_iter().map(|&d| optical_depth_sweep(medium, support, n, spacing, d.normalize())).collect();
         let n_dirs = dirs.len();
         let mut data = vec![0.0f32; nodes * n_dirs];
         data.par_chunks_mut(n_dirs).enumerate().for_each(|(i, row)| {
@@ -117,68 +112,10 @@ impl DepthField {
     }
 }
 
-/// tau (not yet transformed) at every node for one unit direction `d`.
-fn sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing: Vec3, d: Vec3) -> Vec<f32> {
-    let nodes = (n.x * n.y * n.z) as usize;
-    let mut tau = vec![0.0f32; nodes];
-    let a = d.abs().max_position();
-    // The two lateral axes.
-    let (b, c) = ((a + 1) % 3, (a + 2) % 3);
-    let h = spacing[a] / d[a].abs();
-    let voxel = medium.grid().voxel_size().min_element();
-    let steps = (h / voxel).ceil().max(1.0) as u32;
-    let dt = h / steps as f32;
-    let rho = medium.rho();
-    let idx = |p: [u32; 3]| (p[0] + n.x * (p[1] + n.y * p[2])) as usize;
-    // Lateral shift of the upstream point, in nodes of axes b and c.
-    let shift_b = h * d[b] / spacing[b];
-    let shift_c = h * d[c] / spacing[c];
-    let na = n[a];
-    // Slices from the exit side inward; the exit slice itself keeps tau = 0 (rays from
-    // it leave the support at once).
-    for step in 1..na {
-        let s = if d[a] > 0.0 { na - 1 - step } else { step };
-        let s_up = if d[a] > 0.0 { s + 1 } else { s - 1 };
-        for j in 0..n[c] {
-            for i in 0..n[b] {
-                let mut p = [0u32; 3];
-                p[a as usize] = s;
-                p[b as usize] = i;
-                p[c as usize] = j;
-                let x = support.min + Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32) * spacing;
-                let mut sum = 0.0f32;
-                for k in 0..steps {
-                    sum += medium.grid().lookup(x + d * ((k as f32 + 0.5) * dt));
-                }
-                let mut t = sum * dt * rho;
-                // Upstream value: bilinear in slice s_up at (i + shift_b, j + shift_c).
-                let (ub, uc) = (i as f32 + shift_b, j as f32 + shift_c);
-                let (mb, mc) = ((n[b] - 1) as f32, (n[c] - 1) as f32);
-                if ub >= 0.0 && uc >= 0.0 && ub <= mb && uc <= mc {
-                    let (ib, ic) = ((ub.floor() as u32).min(n[b] - 2), (uc.floor() as u32).min(n[c] - 2));
-                    let (fb, fc) = (ub - ib as f32, uc - ic as f32);
-                    let at = |db: u32, dc: u32| {
-                        let mut q = [0u32; 3];
-                        q[a as usize] = s_up;
-                        q[b as usize] = ib + db;
-                        q[c as usize] = ic + dc;
-                        tau[idx(q)]
-                    };
-                    t += (1.0 - fb) * (1.0 - fc) * at(0, 0)
-                        + fb * (1.0 - fc) * at(1, 0)
-                        + (1.0 - fb) * fc * at(0, 1)
-                        + fb * fc * at(1, 1);
-                }
-                tau[idx(p)] = t;
-            }
-        }
-    }
-    tau
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use engine::grid::Bounds3;
     use engine::{DensityGrid, PhaseFunction};
     use std::sync::Arc;
 

@@ -1,0 +1,233 @@
+//! The instant preview: camera rays marched through the density, single scattering
+//! from a precomputed sun-transmittance field, the higher orders from a lattice of
+//! multiple-scattering radiance (a learned model's, for the current sun and camera) or
+//! from the octave approximation.
+//!
+//! Each sample marches its camera ray over the majorant cells it crosses (skipping
+//! empty ones) in steps of at most `step` world units and at most [`MAX_STEP_TAU`]
+//! optical depths at the cell's majorant, each step sampled at a random offset (the
+//! same offset for the whole ray), so passes average out the discretization and the
+//! image keeps refining; dense clouds cost steps by optical depth, not by length.
+//! Over a step of length h with extinction sigma_t at its sample point, the camera
+//! transmittance falls by exp(-sigma_t h) and the step adds
+//! T_cam (1 - exp(-sigma_t h)) albedo S, with the source
+//! S = L_sun [p(omega_cam, omega_sun) T_sun(x) + L_ms(x)] (per unit sigma_s; omega_cam
+//! points back toward the camera). The march ends once T_cam < [`MIN_TRANSMITTANCE`];
+//! what the camera sees through the cloud, T_cam times the sky, goes to `direct`.
+//! Buffers: `low` = single scattering, `high` = the higher orders (the split of
+//! k = 2), `direct` = the sky seen through the medium.
+//!
+//! It is a consistent estimate of the same image as path tracing up to the error of
+//! the fields (the sun transmittance's interpolation, and the multiple-scattering
+//! source's: the model's error and the lattice's), not an unbiased one. Sky light
+//! scattered in the cloud is not included (as in prediction mode).
+//!
+//! Multiple scattering ([`MultipleScattering`]):
+//! - `Lattice`: L_ms(x, omega) for a unit sun, sampled at the nodes of a coarse lattice
+//!   with omega the direction from the node toward the camera, interpolated
+//!   trilinearly (multiple scattering varies slowly; [`Preview::learned_lattice`]);
+//! - `Octaves` (Wrenninge et al. 2013, "Oz: The Great and Volumetric"): octave i >= 1
+//!   adds b^i p(theta; c^i g) T_sun^(a^i), a Henyey-Greenstein lobe of c^i times the
+//!   medium's mean cosine g and a transmittance of a^i times the optical depth (octave
+//!   0 is single scattering). Parameters: `octaves` N in 1 ..= 9 (terms 0 .. N-1,
+//!   default 3), `a`, `b`, `c` in (0, 1] (default 0.5 each, what game engines use);
+//! - `None`: single scattering only.
+//!
+//! Parameters ([`Preview::new`]): `step` the march step in world units, > 0 (default:
+//! half the smallest voxel edge, [`Preview::default_step`]).
+
+use super::base::PathSample;
+use crate::field::{ScalarLattice, SunTransmittance, lattice_over};
+use crate::medium::Medium;
+use crate::phase::PhaseFunction;
+use crate::predictor::InScatterPredictor;
+use crate::rng::Rng;
+use crate::scene::Scene;
+use glam::{UVec3, Vec3};
+use rayon::prelude::*;
+use std::sync::Arc;
+
+/// Camera transmittance below which a march ends (what is left is invisible).
+pub const MIN_TRANSMITTANCE: f32 = 1e-4;
+
+/// The most optical depth one march step may span, at its cell's majorant: the
+/// transmittance is accumulated step by step from jittered samples, whose spread
+/// biases it (exp is convex), and the bias shrinks with the step's optical depth.
+pub const MAX_STEP_TAU: f32 = 0.1;
+
+/// Where the preview's orders >= 2 come from.
+#[derive(Clone, Debug)]
+pub enum MultipleScattering {
+    /// L_ms for a unit sun on a lattice (see the module documentation).
+    Lattice(Arc<ScalarLattice>),
+    /// The octave approximation with N terms (single scattering included) and
+    /// factors a (optical depth), b (amplitude), c (mean cosine).
+    Octaves { octaves: u32, a: f32, b: f32, c: f32 },
+    /// Single scattering only.
+    None,
+}
+
+impl MultipleScattering {
+    /// The octave approximation with the game engines' defaults: 3 octaves,
+    /// a = b = c = 0.5.
+    pub const DEFAULT_OCTAVES: MultipleScattering = MultipleScattering::Octaves { octaves: 3, a: 0.5, b: 0.5, c: 0.5 };
+
+    fn validate(&self) -> Result<(), String> {
+        if let MultipleScattering::Octaves { octaves, a, b, c } = *self {
+            if !(1..=9).contains(&octaves) {
+                return Err(format!("the octave approximation takes 1 ..= 9 octaves, got {octaves}"));
+            }
+            for (name, v) in [("a", a), ("b", b), ("c", c)] {
+                if !(v > 0.0 && v <= 1.0) {
+                    return Err(format!("octave factor {name} must lie in (0, 1], got {v}"));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The preview's state for one scene: the sun's transmittance and the multiple
+/// scattering source, shared by every sample.
+#[derive(Clone, Debug)]
+pub struct Preview {
+    sun: Arc<SunTransmittance>,
+    multiple: MultipleScattering,
+    step: f32,
+}
+
+impl Preview {
+    /// The default march step for `medium`: half its smallest voxel edge.
+    pub fn default_step(medium: &Medium) -> f32 {
+        0.5 * medium.grid().voxel_size().min_element()
+    }
+
+    /// A preview from its fields; errors name a bad parameter.
+    pub fn new(sun: Arc<SunTransmittance>, multiple: MultipleScattering, step: f32) -> Result<Self, String> {
+        if !(step > 0.0 && step.is_finite()) {
+            return Err(format!("preview step must be a positive length, got {step}"));
+        }
+        multiple.validate()?;
+        Ok(Preview { sun, multiple, step })
+    }
+
+    pub fn multiple(&self) -> &MultipleScattering {
+        &self.multiple
+    }
+
+    pub fn sun_transmittance(&self) -> &Arc<SunTransmittance> {
+        &self.sun
+    }
+
+    /// L_ms for a unit sun from `predictor` at the nodes of a lattice over the
+    /// medium (at most `max_nodes` per axis), with omega the direction from each node
+    /// toward `camera`. Nodes in empty majorant cells are left at 0 (their value only
+    /// ever multiplies a zero density). A predictor of total in-scattered radiance
+    /// gets the single scattering of `sun` subtracted (clamped at 0).
+    pub fn learned_lattice(
+        scene: &Scene,
+        sun: &SunTransmittance,
+        predictor: &dyn InScatterPredictor,
+        camera: Vec3,
+        max_nodes: u32,
+    ) -> ScalarLattice {
+        let medium = &scene.medium;
+        let (n, spacing) = lattice_over(medium, max_nodes);
+        let origin = medium.grid().support_bounds().min;
+        let light = scene.sun.as_ref();
+        let total = predictor.predicts_single_scattering();
+        let data = (0..n.x * n.y * n.z)
+            .into_par_iter()
+            .map(|i| {
+                let (x, y, z) = (i % n.x, (i / n.x) % n.y, i / (n.x * n.y));
+                let p = origin + UVec3::new(x, y, z).as_vec3() * spacing;
+                let Some(light) = light else { return 0.0 };
+                if medium.majorant_density_at(p) <= 0.0 {
+                    return 0.0;
+                }
+                let Some(omega) = (camera - p).try_normalize() else { return 0.0 };
+                let li = predictor.predict(medium, light, p, omega);
+                let ms = if total { li - medium.phase().eval(omega, sun.to_sun()) * sun.at(p) } else { li };
+                if ms.is_finite() { ms.max(0.0) } else { 0.0 }
+            })
+            .collect();
+        ScalarLattice::new(n, origin, spacing, data)
+    }
+
+    /// One sample of the radiance arriving at `o` from direction `-d`, split into the
+    /// buffers of the module documentation.
+    pub fn trace(&self, scene: &Scene, o: Vec3, d: Vec3, rng: &mut Rng) -> PathSample {
+        let medium = &scene.medium;
+        let mut out = PathSample::default();
+        let offset = rng.uniform();
+        let Some(sun) = &scene.sun else {
+            out.direct = scene.sky.radiance;
+            return out;
+        };
+        let Some((t0, t1)) = medium.bounds().intersect(o, d.recip(), 0.0, f32::INFINITY) else {
+            out.direct = scene.sky.radiance;
+            return out;
+        };
+        let wo = -d;
+        let to_sun = self.sun.to_sun();
+        let phase = medium.phase();
+        let p_single = phase.eval(wo, to_sun);
+        // The octaves' lobes and exponents, once per ray (the angle is the ray's).
+        let mut lobes = [(0.0f32, 0.0f32); 8];
+        let octaves = match self.multiple {
+            MultipleScattering::Octaves { octaves, a, b, c } => {
+                let g = phase.mean_cosine();
+                let n = octaves as usize;
+                for (i, lobe) in lobes.iter_mut().enumerate().take(n - 1) {
+                    let i = i as i32 + 1;
+                    let p =
+                        PhaseFunction::HenyeyGreenstein { g: (c.powi(i) * g).clamp(-0.999, 0.999) }.eval(wo, to_sun);
+                    *lobe = (b.powi(i) * p, a.powi(i));
+                }
+                n - 1
+            }
+            _ => 0,
+        };
+        let albedo = medium.albedo();
+        let (mut tr, mut single, mut multiple) = (1.0f32, 0.0f32, 0.0f32);
+        'march: for seg in medium.majorant().segments(o, d, t0, t1) {
+            let sigma_maj = (medium.rho() * seg.max_density).min(medium.sigma_cap());
+            if sigma_maj <= 0.0 {
+                continue;
+            }
+            // Steps of at most `step` and of at most MAX_STEP_TAU optical depths at the
+            // cell's majorant, tiling the segment; each sampled at the ray's offset
+            // within it.
+            let h = self.step.min(MAX_STEP_TAU / sigma_maj);
+            let mut start = seg.t_min;
+            while start < seg.t_max {
+                let len = h.min(seg.t_max - start);
+                let x = o + d * (start + offset * len);
+                start += len;
+                let sigma_t = medium.sigma_t(x);
+                if sigma_t <= 0.0 {
+                    continue;
+                }
+                let absorbed = 1.0 - (-sigma_t * len).exp();
+                let w = tr * absorbed * albedo;
+                let t_sun = self.sun.at(x);
+                single += w * p_single * t_sun;
+                multiple += w * match &self.multiple {
+                    MultipleScattering::Lattice(l) => l.lookup(x),
+                    MultipleScattering::Octaves { .. } => {
+                        lobes[..octaves].iter().map(|&(amp, exp)| amp * t_sun.powf(exp)).sum::<f32>()
+                    }
+                    MultipleScattering::None => 0.0,
+                };
+                tr *= 1.0 - absorbed;
+                if tr < MIN_TRANSMITTANCE {
+                    break 'march;
+                }
+            }
+        }
+        out.low = sun.radiance() * single;
+        out.high = sun.radiance() * multiple;
+        out.direct = scene.sky.radiance * tr;
+        out
+    }
+}
