@@ -28,6 +28,7 @@ fn small_evaluation_runs_end_to_end() {
         // Path tracing needs about 14,000 spp here (18 % relative noise per pixel at
         // 1,024 spp, toplit, g = 0.85).
         preview_spp: Some(32_768),
+        preview_passes: 8,
         out: out.clone(),
         run: RunArgs { threads: None, quiet: true },
     };
@@ -70,6 +71,23 @@ fn small_evaluation_runs_end_to_end() {
     assert!(md.contains("Time to preview"), "{md}");
     let (f1, f4) = (k1.rmse_floor.unwrap(), k4.rmse_floor.unwrap());
     assert!(f1.is_finite() && f4 < f1, "RMSE floor k=1 {f1}, k=4 {f4}");
+    // The instant previews: the learned one, the octaves with their defaults and
+    // fitted to the reference; a fit does no worse than the defaults it starts
+    // from; every preview's first pass is already within a few times its floor (it
+    // is nearly noise-free); curves, sheet and tables written.
+    let csv = std::fs::read_to_string(out.join("preview.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 3, "{csv}");
+    let floor = |t: &str| rows.iter().find(|r| r[4] == t).unwrap()[9].parse::<f64>().unwrap();
+    let first = |t: &str| rows.iter().find(|r| r[4] == t).unwrap()[8].parse::<f64>().unwrap();
+    assert!(floor("octaves fitted") <= floor("octaves") + 1e-4, "{csv}");
+    for t in ["learned", "octaves", "octaves fitted"] {
+        assert!(floor(t).is_finite() && first(t) < 2.0 * floor(t) + 0.05, "{t}: {csv}");
+    }
+    for f in ["preview.md", "preview_rmse_A_toplit_rho20_96px_res64.png", "preview_sheet_A_toplit_rho20_96px_res64.png"]
+    {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
     // A rerun finds every render in the cache: the same numbers (to the last digit
     // JSON keeps; a re-render would differ in timing and therefore in TTUV).
     let again = eval(&args).unwrap();

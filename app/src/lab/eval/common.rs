@@ -17,10 +17,14 @@ pub(crate) struct Tracked {
     pub seconds: f64,
     /// Render seconds until the image first came within 5 % relative RMSE.
     pub preview_secs: Option<f64>,
+    /// (render seconds, relative RMSE) after passes 1, 2, 3, 4, 6, 8, 11, ... (about
+    /// 30 % apart) and the last: the convergence curve, with a reference.
+    pub curve: Vec<(f64, f64)>,
 }
 
-/// Renders up to `spp` passes; with a reference, checks the relative RMSE after every
-/// pass and, if `stop_at_preview`, stops once it is within [`PREVIEW_RMSE`].
+/// Renders up to `spp` passes; with a reference, checks the relative RMSE after
+/// passes about 30 % apart (and every pass until the first preview) and, if
+/// `stop_at_preview`, stops once it is within [`PREVIEW_RMSE`].
 pub(crate) fn render_tracked(
     scene: Arc<Scene>,
     integrator: Integrator,
@@ -32,7 +36,7 @@ pub(crate) fn render_tracked(
 ) -> Result<Tracked> {
     let mut r = Renderer::new(scene, integrator)?;
     let generation = control.generation();
-    let (mut seconds, mut preview_secs) = (0.0f64, None);
+    let (mut seconds, mut preview_secs, mut curve, mut next_point) = (0.0f64, None, vec![], 1u32);
     for done in 1..=spp {
         let t = Instant::now();
         if r.render_pass(control, generation) == PassOutcome::Cancelled {
@@ -40,18 +44,25 @@ pub(crate) fn render_tracked(
         }
         seconds += t.elapsed().as_secs_f64();
         on_pass(done);
-        if let (Some((reference, mask)), None) = (reference, preview_secs) {
+        let Some((reference, mask)) = reference else { continue };
+        if preview_secs.is_none() || done >= next_point || done == spp {
             let film = r.film_handle();
             let img = film.read().unwrap_or_else(|e| e.into_inner()).mean(Buffer::Full);
-            if relative_rmse(&img, reference, mask) <= PREVIEW_RMSE {
+            let rmse = relative_rmse(&img, reference, mask);
+            if done >= next_point || done == spp {
+                curve.push((seconds, rmse));
+                next_point = (next_point as f64 * 1.3).ceil() as u32;
+            }
+            if preview_secs.is_none() && rmse <= PREVIEW_RMSE {
                 preview_secs = Some(seconds);
                 if stop_at_preview {
+                    curve.push((seconds, rmse));
                     break;
                 }
             }
         }
     }
-    Ok(Tracked { film: r.snapshot(), seconds, preview_secs })
+    Ok(Tracked { film: r.snapshot(), seconds, preview_secs, curve })
 }
 
 /// An image stack (layers of the same size) as one (h, w, 3 n) .npy file.

@@ -22,6 +22,7 @@
 //! stopped, and `--scenes`, `--configs`, `--rho` and `--k` pick a subset.
 
 use super::common::{Csv, TileSheet, image_npy, opt_cell, read_image_npy, read_json, render_tracked, write_json};
+use super::preview::PreviewJob;
 use crate::cli::common::{RunArgs, init_threads, progress_bar, stop_on_ctrl_c};
 use crate::metrics::{
     Image, avg3, bias, false_colour, lit_mean, nonempty, projected_preview, reference_noise, relative_rmse_less, ttuv,
@@ -85,6 +86,10 @@ pub struct EvalArgs {
     /// Sample cap of path tracing's preview run (default: 4 x spp-ref).
     #[arg(long)]
     pub preview_spp: Option<u32>,
+    /// Passes of each instant preview with --preview (the learned one, the octave
+    /// approximation with its defaults and fitted to the reference).
+    #[arg(long, default_value_t = 32)]
+    pub preview_passes: u32,
     /// Output directory (tables, plots, sheets, and the render cache).
     #[arg(long, default_value = "out/eval")]
     pub out: PathBuf,
@@ -170,6 +175,9 @@ pub struct CellResult {
     /// The reference's own relative noise ([`reference_noise`]).
     #[serde(default)]
     pub ref_noise: Option<f64>,
+    /// The prediction's (seconds, relative RMSE) curve.
+    #[serde(default)]
+    pub curve: Vec<(f64, f64)>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -181,6 +189,9 @@ struct ReferenceMeta {
     /// Whether the path-traced preview run was made (it may not have reached 5 %).
     #[serde(default)]
     preview_tried: bool,
+    /// That run's (seconds, relative RMSE) curve.
+    #[serde(default)]
+    preview_curve: Vec<(f64, f64)>,
 }
 
 /// The render cache's name for a model: a fingerprint of its bytes (weights and
@@ -266,6 +277,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
     let renders_per_group = args.spp_ref as u64 + args.spp as u64 * args.k.len() as u64;
     let bar = progress_bar(groups.len() as u64 * renders_per_group, "passes", args.run.quiet);
     let mut results = vec![];
+    let mut previews = vec![];
     let mut grids: Vec<(String, Arc<DensityGrid>)> = vec![];
     for (gi, (label, preset, config, rho)) in groups.iter().enumerate() {
         let base = (gi as u64) * renders_per_group;
@@ -310,6 +322,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                     ttuv: ttuv(&img.var, &mask, t.seconds),
                     preview_secs: None,
                     preview_tried: false,
+                    preview_curve: vec![],
                 };
                 write_bytes_atomically(
                     &ref_npy,
@@ -334,7 +347,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 true,
                 |_| {},
             )?;
-            (meta.preview_secs, meta.preview_tried) = (t.preview_secs, true);
+            (meta.preview_secs, meta.preview_tried, meta.preview_curve) = (t.preview_secs, true, t.curve);
             write_json(&ref_json, &meta)?;
         }
         // The model bound to this cloud and sun, built once for every k.
@@ -405,6 +418,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 preview_projected_pred: projected_preview(ttuv_pred, ref_mean, rmse_floor),
                 preview_projected_ref: None,
                 ref_noise: None,
+                curve: t.curve.clone(),
             };
             let layers = [full.mean, t.film.mean(Buffer::Low), t.film.mean(Buffer::High)];
             write_bytes_atomically(&cell_npy, &image_npy(&layers, args.size, args.size))?;
@@ -421,10 +435,31 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             c.ref_noise = Some(ref_noise);
         }
         write_sheet(&args.out.join(format!("sheet_{key}.png")), &reference, &cache, &key, args, &model_id)?;
+        if args.preview {
+            let job = PreviewJob {
+                file: &file,
+                scene: &scene,
+                reference: &reference,
+                mask: &mask,
+                model: &model,
+                field_nodes: args.field_nodes,
+                spp: args.preview_passes.max(2),
+                control: &control,
+                cache: &cache,
+                key: &format!("{key}_{model_id}"),
+                labels: (label, config, *rho),
+            };
+            let cells = job.run()?;
+            super::preview::write_group(&args.out, &key, &job, &cells, &meta.preview_curve, &group_cells)?;
+            previews.extend(cells);
+        }
         results.extend(group_cells);
     }
     bar.finish_and_clear();
     write_reports(&args.out, &results, args)?;
+    if args.preview {
+        super::preview::write_reports(&args.out, &results, &previews, args.run.quiet)?;
+    }
     Ok(results)
 }
 

@@ -7,6 +7,7 @@
 pub mod common;
 pub mod global;
 pub mod p2p;
+pub mod preview;
 
 use anyhow::Result;
 use clap::Subcommand;

@@ -1,0 +1,420 @@
+//! The instant preview in `nimbus eval --preview`: per scene, lighting and density,
+//! the learned preview, the octave approximation with its defaults and with its
+//! factors fitted to the reference (least squares on the image), each with its
+//! set-up time (fields, model, lattice), time to preview (set-up plus render seconds
+//! until 5 % relative RMSE against the converged reference), RMSE floor (the error
+//! more passes do not remove) and convergence curve.
+//!
+//! The fit is an oracle baseline: it sees the reference, and its time is not counted.
+//! It runs Nelder-Mead over (a, b, c) in (0, 1]^3 with 3 octaves, each trial a
+//! preview of a quarter of the resolution (two passes) against the reference boxed
+//! down to it.
+
+use super::common::{image_npy, read_image_npy, read_json, render_tracked, write_json};
+use crate::metrics::{Image, relative_rmse_less};
+use crate::output::write_bytes_atomically;
+use crate::scene::SceneFile;
+use anyhow::Result;
+use engine::field::SunTransmittance;
+use engine::integrator::preview::{MultipleScattering, Preview};
+use engine::{Buffer, Integrator, RenderControl, Renderer, Scene};
+use models::global::{BoundGlobalModel, GlobalModel};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// One preview technique in one configuration.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PreviewCell {
+    pub scene: String,
+    pub config: String,
+    pub rho: f32,
+    pub size: u32,
+    /// learned | octaves | octaves fitted
+    pub technique: String,
+    /// The octave approximation's (N, a, b, c), for the octave rows.
+    pub octaves: Option<[f32; 4]>,
+    /// Seconds to build what the technique needs before its first pass.
+    pub setup_secs: f64,
+    /// Set-up plus render seconds until the image is within 5 % relative RMSE.
+    pub preview_secs: Option<f64>,
+    /// Relative RMSE after the first pass.
+    pub rmse_first_pass: f64,
+    /// Relative RMSE with the image's own noise subtracted: its bias part.
+    pub rmse_floor: f64,
+    pub spp: u32,
+    /// (set-up + render seconds, relative RMSE).
+    pub curve: Vec<(f64, f64)>,
+}
+
+/// What the preview cells of one configuration share.
+pub struct PreviewJob<'a> {
+    pub file: &'a SceneFile,
+    pub scene: &'a Arc<Scene>,
+    pub reference: &'a Image,
+    pub mask: &'a [bool],
+    pub model: &'a Arc<GlobalModel>,
+    /// Depth-field nodes of the bound model.
+    pub field_nodes: u32,
+    /// Passes of each preview render.
+    pub spp: u32,
+    pub control: &'a RenderControl,
+    pub cache: &'a Path,
+    /// The configuration's cache key and labels.
+    pub key: &'a str,
+    pub labels: (&'a str, &'a str, f32),
+}
+
+impl PreviewJob<'_> {
+    /// The three preview cells (from the cache when there).
+    pub fn run(&self) -> Result<Vec<PreviewCell>> {
+        let sun = self.scene.sun.as_ref().expect("evaluation scenes have a sun");
+        let t = Instant::now();
+        let field = Arc::new(SunTransmittance::build(&self.scene.medium, sun, SunTransmittance::DEFAULT_MAX_NODES));
+        let field_secs = t.elapsed().as_secs_f64();
+        let mut cells = vec![];
+        // The learned preview: the model bound to the cloud and sun, its lattice for
+        // this camera.
+        let learned = |_: &()| -> Result<(MultipleScattering, f64)> {
+            let t = Instant::now();
+            let bound = BoundGlobalModel::new(self.model.clone(), &self.scene.medium, sun, self.field_nodes);
+            let lattice = Preview::learned_lattice(
+                self.scene,
+                &field,
+                &bound,
+                self.scene.camera.position(),
+                self.file.render.preview_nodes,
+            );
+            Ok((MultipleScattering::Lattice(Arc::new(lattice)), t.elapsed().as_secs_f64()))
+        };
+        cells.push(self.cell("learned", None, field_secs, &field, &learned)?);
+        let defaults = [3.0, 0.5, 0.5, 0.5];
+        cells.push(self.cell("octaves", Some(defaults), field_secs, &field, &|_: &()| {
+            Ok((MultipleScattering::DEFAULT_OCTAVES, 0.0))
+        })?);
+        let fitted_key = self.cache.join(format!("{}_octaves_fit.json", self.key));
+        let fitted = match read_json::<[f32; 4]>(&fitted_key) {
+            Some(p) => p,
+            None => {
+                let p = self.fit_octaves(&field)?;
+                write_json(&fitted_key, &p)?;
+                p
+            }
+        };
+        cells
+            .push(self.cell("octaves fitted", Some(fitted), field_secs, &field, &|_: &()| Ok((octaves(fitted), 0.0)))?);
+        Ok(cells)
+    }
+
+    /// One technique's cell: rendered (or read from the cache) and measured.
+    fn cell(
+        &self,
+        technique: &str,
+        params: Option<[f32; 4]>,
+        field_secs: f64,
+        field: &Arc<SunTransmittance>,
+        multiple: &dyn Fn(&()) -> Result<(MultipleScattering, f64)>,
+    ) -> Result<PreviewCell> {
+        let tag = format!("{}_preview_{}_spp{}", self.key, technique.replace(' ', "_"), self.spp);
+        let (json, npy) = (self.cache.join(format!("{tag}.json")), self.cache.join(format!("{tag}.npy")));
+        if let (Some(cell), true) = (read_json::<PreviewCell>(&json), npy.exists()) {
+            return Ok(cell);
+        }
+        let (ms, ms_secs) = multiple(&())?;
+        let setup_secs = field_secs + ms_secs;
+        let preview =
+            Preview::new(field.clone(), ms, Preview::default_step(&self.scene.medium)).map_err(anyhow::Error::msg)?;
+        let integrator = Integrator::preview(self.file.settings(), Arc::new(preview))?;
+        let t = render_tracked(
+            self.scene.clone(),
+            integrator,
+            self.spp,
+            self.control,
+            Some((self.reference, self.mask)),
+            false,
+            |_| {},
+        )?;
+        let full = Image::from_film(&t.film, Buffer::Full);
+        let (label, config, rho) = self.labels;
+        let cell = PreviewCell {
+            scene: label.into(),
+            config: config.into(),
+            rho,
+            size: self.reference.w,
+            technique: technique.into(),
+            octaves: params,
+            setup_secs,
+            preview_secs: t.preview_secs.map(|s| s + setup_secs),
+            rmse_first_pass: t.curve.first().map_or(f64::INFINITY, |p| p.1),
+            rmse_floor: relative_rmse_less(&full.mean, self.reference, self.mask, Some(&full.var)),
+            spp: self.spp,
+            curve: t.curve.iter().map(|&(s, r)| (s + setup_secs, r)).collect(),
+        };
+        let (w, h) = (self.reference.w, self.reference.h);
+        write_bytes_atomically(&npy, &image_npy(&[full.mean], w, h))?;
+        write_json(&json, &cell)?;
+        Ok(cell)
+    }
+
+    /// The preview image of `technique` from the cache (after [`PreviewJob::run`]).
+    pub fn image(&self, technique: &str) -> Option<Vec<[f32; 3]>> {
+        let tag = format!("{}_preview_{}_spp{}", self.key, technique.replace(' ', "_"), self.spp);
+        let (w, h) = (self.reference.w, self.reference.h);
+        read_image_npy(&self.cache.join(format!("{tag}.npy")), w, h, 1).ok().and_then(|l| l.into_iter().next())
+    }
+
+    /// (N = 3, a, b, c) minimizing the squared error against the reference over the
+    /// lit pixels, at a quarter of the resolution (Nelder-Mead from the defaults).
+    fn fit_octaves(&self, field: &Arc<SunTransmittance>) -> Result<[f32; 4]> {
+        let f = 4u32.min(self.reference.w).max(1);
+        let (w, h) = (self.reference.w.div_ceil(f), self.reference.h.div_ceil(f));
+        let cam = &self.scene.camera;
+        let small = Arc::new(Scene {
+            camera: engine::Camera::new(cam.position(), cam.target(), cam.up(), cam.fov_y_deg(), w, h)?,
+            ..(**self.scene).clone()
+        });
+        // The reference boxed down to the small image (lit pixels only).
+        let mut target = vec![(0.0f64, 0u32); (w * h) as usize];
+        for y in 0..self.reference.h {
+            for x in 0..self.reference.w {
+                let i = (y * self.reference.w + x) as usize;
+                let t = &mut target[((y / f) * w + x / f) as usize];
+                t.0 += (self.reference.mean[i].iter().map(|v| *v as f64).sum::<f64>()) / 3.0;
+                t.1 += 1;
+            }
+        }
+        let target: Vec<f64> = target.iter().map(|(s, n)| s / (*n).max(1) as f64).collect();
+        let step = Preview::default_step(&self.scene.medium);
+        let loss = |p: &[f64; 3]| -> f64 {
+            let [a, b, c] = p.map(|v| v.clamp(0.01, 1.0) as f32);
+            let Ok(preview) = Preview::new(field.clone(), octaves([3.0, a, b, c]), step) else { return f64::INFINITY };
+            let Ok(integ) = Integrator::preview(self.file.settings(), Arc::new(preview)) else { return f64::INFINITY };
+            let Ok(mut r) = Renderer::new(small.clone(), integ) else { return f64::INFINITY };
+            for _ in 0..2 {
+                r.render_pass(self.control, self.control.generation());
+            }
+            let img = r.snapshot().mean(Buffer::Full);
+            img.iter()
+                .zip(&target)
+                .filter(|(_, t)| **t > 0.0)
+                .map(|(p, t)| ((p.iter().map(|v| *v as f64).sum::<f64>()) / 3.0 - t).powi(2))
+                .sum()
+        };
+        let best = nelder_mead(&loss, [0.5, 0.5, 0.5], 0.2, 60);
+        let [a, b, c] = best.map(|v| v.clamp(0.01, 1.0) as f32);
+        Ok([3.0, a, b, c])
+    }
+}
+
+/// The octave approximation of (N, a, b, c).
+fn octaves(p: [f32; 4]) -> MultipleScattering {
+    MultipleScattering::Octaves { octaves: p[0] as u32, a: p[1], b: p[2], c: p[3] }
+}
+
+/// Nelder-Mead minimization of `f` from `start` (initial simplex `scale` along each
+/// axis), at most `evals` evaluations; returns the best point.
+fn nelder_mead(f: &dyn Fn(&[f64; 3]) -> f64, start: [f64; 3], scale: f64, evals: usize) -> [f64; 3] {
+    let mut simplex: Vec<([f64; 3], f64)> = (0..4)
+        .map(|i| {
+            let mut p = start;
+            if i > 0 {
+                p[i - 1] += if p[i - 1] + scale <= 1.0 { scale } else { -scale };
+            }
+            (p, f(&p))
+        })
+        .collect();
+    let mut used = 4;
+    let combine =
+        |a: &[f64; 3], b: &[f64; 3], t: f64| -> [f64; 3] { std::array::from_fn(|k| a[k] + t * (b[k] - a[k])) };
+    while used < evals {
+        simplex.sort_by(|x, y| x.1.total_cmp(&y.1));
+        let centroid: [f64; 3] = std::array::from_fn(|k| simplex[..3].iter().map(|s| s.0[k]).sum::<f64>() / 3.0);
+        let worst = simplex[3];
+        let reflect = combine(&centroid, &worst.0, -1.0);
+        let fr = f(&reflect);
+        used += 1;
+        if fr < simplex[0].1 {
+            let expand = combine(&centroid, &worst.0, -2.0);
+            let fe = f(&expand);
+            used += 1;
+            simplex[3] = if fe < fr { (expand, fe) } else { (reflect, fr) };
+        } else if fr < simplex[2].1 {
+            simplex[3] = (reflect, fr);
+        } else {
+            let contract = combine(&centroid, &worst.0, 0.5);
+            let fc = f(&contract);
+            used += 1;
+            if fc < worst.1 {
+                simplex[3] = (contract, fc);
+            } else {
+                // Shrink toward the best.
+                let best = simplex[0].0;
+                for s in simplex.iter_mut().skip(1) {
+                    s.0 = combine(&best, &s.0, 0.5);
+                    s.1 = f(&s.0);
+                    used += 1;
+                }
+            }
+        }
+    }
+    simplex.sort_by(|x, y| x.1.total_cmp(&y.1));
+    simplex[0].0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Nelder-Mead finds the minimum of a smooth bowl inside the unit cube.
+    #[test]
+    fn nelder_mead_finds_a_bowl_minimum() {
+        let f = |p: &[f64; 3]| (p[0] - 0.3).powi(2) + 2.0 * (p[1] - 0.7).powi(2) + 0.5 * (p[2] - 0.15).powi(2);
+        let best = nelder_mead(&f, [0.5, 0.5, 0.5], 0.2, 200);
+        for (got, want) in best.iter().zip([0.3, 0.7, 0.15]) {
+            assert!((got - want).abs() < 1e-3, "{best:?}");
+        }
+    }
+}
+
+/// Seconds as x for the curves: log10, so a render of minutes and a preview of a
+/// fraction of a second share a plot.
+fn log_seconds(curve: &[(f64, f64)]) -> Vec<(f64, f64)> {
+    curve.iter().map(|&(s, r)| (s.max(1e-3).log10(), r)).collect()
+}
+
+/// One configuration's plot of relative RMSE against seconds (path tracing, the
+/// predictions, the previews) and its sheet: reference, learned preview, octaves,
+/// fitted octaves, and the learned preview's error in false colour (yellow = the
+/// reference's lit mean).
+pub fn write_group(
+    out: &Path,
+    key: &str,
+    job: &PreviewJob,
+    cells: &[PreviewCell],
+    path_traced: &[(f64, f64)],
+    predictions: &[super::global::CellResult],
+) -> Result<()> {
+    use models::plot::{PALETTE, Series};
+    let mut series =
+        vec![Series { label: "path tracing".into(), colour: PALETTE[0], points: log_seconds(path_traced) }];
+    for (i, c) in predictions.iter().enumerate().take(3) {
+        series.push(Series {
+            label: format!("predict k {}", c.k),
+            colour: PALETTE[1 + i],
+            points: log_seconds(&c.curve),
+        });
+    }
+    for (i, c) in cells.iter().enumerate() {
+        series.push(Series { label: c.technique.clone(), colour: PALETTE[4 + i], points: log_seconds(&c.curve) });
+    }
+    let plot = models::plot::line_plot_png(key, "log10 seconds", "relative RMSE", &series);
+    write_bytes_atomically(&out.join(format!("preview_rmse_{key}.png")), &plot)?;
+    let reference = job.reference;
+    let (w, h) = (reference.w, reference.h);
+    let tone = crate::output::ToneMap::Filmic;
+    let toned = |img: &[[f32; 3]]| img.iter().map(|p| p.map(|v| tone.apply(v, 0.0))).collect::<Vec<[u8; 3]>>();
+    let mut sheet = super::common::TileSheet::new(w, h, 5, 1);
+    sheet.put(0, 0, &toned(&reference.mean));
+    for (col, technique) in ["learned", "octaves", "octaves fitted"].iter().enumerate() {
+        if let Some(img) = job.image(technique) {
+            sheet.put(col as u32 + 1, 0, &toned(&img));
+            if col == 0 {
+                let scale = crate::metrics::lit_mean(&reference.mean).max(1e-12);
+                let error: Vec<[u8; 3]> = img
+                    .iter()
+                    .zip(&reference.mean)
+                    .map(|(a, b)| {
+                        let d: [f32; 3] = std::array::from_fn(|c| (a[c] - b[c]).abs());
+                        crate::metrics::false_colour((crate::metrics::avg3(&d) / scale) as f32)
+                    })
+                    .collect();
+                sheet.put(4, 0, &error);
+            }
+        }
+    }
+    sheet.save(&out.join(format!("preview_sheet_{key}.png")))
+}
+
+/// preview.csv (every cell) and preview.md: per configuration, path tracing's and the
+/// best prediction's time to preview beside the previews'.
+pub fn write_reports(
+    out: &Path,
+    predictions: &[super::global::CellResult],
+    cells: &[PreviewCell],
+    quiet: bool,
+) -> Result<()> {
+    use super::common::{Csv, opt_cell};
+    let csv = Csv::<PreviewCell>::new()
+        .col("scene", |c| c.scene.clone())
+        .col("config", |c| c.config.clone())
+        .col("rho", |c| c.rho.to_string())
+        .col("size", |c| c.size.to_string())
+        .col("technique", |c| c.technique.clone())
+        .col("octaves", |c| c.octaves.map(|p| format!("{} {} {} {}", p[0], p[1], p[2], p[3])).unwrap_or_default())
+        .col("setup_secs", |c| format!("{:.3}", c.setup_secs))
+        .col("preview_secs", |c| opt_cell(c.preview_secs))
+        .col("rmse_first_pass", |c| format!("{:.5}", c.rmse_first_pass))
+        .col("rmse_floor", |c| format!("{:.5}", c.rmse_floor))
+        .col("spp", |c| c.spp.to_string())
+        .render(cells);
+    write_bytes_atomically(&out.join("preview.csv"), csv.as_bytes())?;
+    let secs = |v: Option<f64>| v.map_or("never".to_string(), |s| format!("{s:.2} s"));
+    let mut md = String::from(
+        "# nimbus eval --preview: time to preview (5 % relative RMSE against the converged reference)\n\n\
+         Cells: time to preview (set-up included for the previews) / RMSE floor. Prediction: the best k.\n\n\
+         | scene | config | rho | size | path tracing | prediction | learned preview | octaves (default) | octaves (fitted) | path tracing / learned |\n\
+         |---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    let mut groups: Vec<(&str, &str, f32, u32)> =
+        cells.iter().map(|c| (c.scene.as_str(), c.config.as_str(), c.rho, c.size)).collect();
+    groups.dedup();
+    for (scene, config, rho, size) in groups {
+        let here = |t: &str| {
+            cells.iter().find(|c| {
+                (c.scene.as_str(), c.config.as_str(), c.rho, c.size, c.technique.as_str())
+                    == (scene, config, rho, size, t)
+            })
+        };
+        let preds: Vec<_> = predictions
+            .iter()
+            .filter(|c| (c.scene.as_str(), c.config.as_str(), c.rho, c.size) == (scene, config, rho, size))
+            .collect();
+        let pt = preds.first().and_then(|c| c.preview_secs_ref);
+        let best =
+            preds.iter().filter_map(|c| c.preview_secs_pred.map(|s| (s, c.k))).min_by(|a, b| a.0.total_cmp(&b.0));
+        let pred_cell = match best {
+            Some((s, k)) => format!("{s:.1} s (k {k})"),
+            None => format!(
+                "never (floor {:.1} %)",
+                100.0 * preds.iter().filter_map(|c| c.rmse_floor).fold(f64::INFINITY, f64::min)
+            ),
+        };
+        let cell = |t: &str| {
+            here(t).map_or("-".to_string(), |c| {
+                let fit = c
+                    .octaves
+                    .filter(|_| t == "octaves fitted")
+                    .map(|p| format!(", a {:.2} b {:.2} c {:.2}", p[1], p[2], p[3]))
+                    .unwrap_or_default();
+                format!("{} / {:.1} %{fit}", secs(c.preview_secs), 100.0 * c.rmse_floor)
+            })
+        };
+        let ratio = match (pt, here("learned").and_then(|c| c.preview_secs)) {
+            (Some(a), Some(b)) => format!("{:.0}x", a / b),
+            _ => "-".into(),
+        };
+        md += &format!(
+            "| {scene} | {config} | {rho} | {size} | {} | {pred_cell} | {} | {} | {} | {ratio} |\n",
+            secs(pt),
+            cell("learned"),
+            cell("octaves"),
+            cell("octaves fitted")
+        );
+    }
+    write_bytes_atomically(&out.join("preview.md"), md.as_bytes())?;
+    if !quiet {
+        println!("{md}");
+    }
+    Ok(())
+}
