@@ -168,3 +168,53 @@ impl<'a, T> Csv<'a, T> {
 pub(crate) fn opt_cell(v: Option<f64>) -> String {
     v.map(|v| v.to_string()).unwrap_or_default()
 }
+
+/// The figures of merit of one (scene, config, rho, k) cell.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CellResult {
+    pub scene: String,
+    pub config: String,
+    pub rho: f32,
+    pub k: u32,
+    pub p: f32,
+    pub spp_ref: u32,
+    pub spp: u32,
+    pub size: u32,
+    /// Absolute bias (docs/conventions.md).
+    pub bias: f64,
+    /// bias / mean reference over the same pixels.
+    pub rel_bias: f64,
+    /// The bias that noise alone would show (both images' variances, after the
+    /// downscale), relative: bias values near it are not resolved.
+    pub rel_noise_floor: f64,
+    pub ttuv_ref: f64,
+    pub ttuv_pred: f64,
+    pub speedup: f64,
+    pub secs_ref: f64,
+    pub secs_pred: f64,
+    /// Seconds to build the model's depth field for this cloud and sun (once per
+    /// configuration; not part of TTUV).
+    pub secs_field: f64,
+    /// Seconds of the automatic-p pilot passes (0 without --auto-p; not part of TTUV).
+    pub secs_pilot: f64,
+    pub preview_secs_pred: Option<f64>,
+    pub preview_secs_ref: Option<f64>,
+    /// The prediction's relative RMSE once its noise is gone (its bias part; see
+    /// `relative_rmse_less`): at or above `PREVIEW_RMSE` it never previews.
+    #[serde(default)]
+    pub rmse_floor: Option<f64>,
+    /// Seconds to preview projected from TTUV and the floor (variance falls as 1/t):
+    /// TTUV / (mean^2 (0.05^2 - floor^2)); None when the floor is at or above 5 %.
+    #[serde(default)]
+    pub preview_projected_pred: Option<f64>,
+    /// The same projection for path tracing (floor 0: it is unbiased), a check on the
+    /// measured `preview_secs_ref`.
+    #[serde(default)]
+    pub preview_projected_ref: Option<f64>,
+    /// The reference's own relative noise (`reference_noise`).
+    #[serde(default)]
+    pub ref_noise: Option<f64>,
+    /// The prediction's (seconds, relative RMSE) curve.
+    #[serde(default)]
+    pub curve: Vec<(f64, f64)>,
+}

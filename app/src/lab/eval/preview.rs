@@ -293,7 +293,7 @@ pub fn write_group(
     job: &PreviewJob,
     cells: &[PreviewCell],
     path_traced: &[(f64, f64)],
-    predictions: &[super::global::CellResult],
+    predictions: &[super::common::CellResult],
 ) -> Result<()> {
     use models::plot::{PALETTE, Series};
     let mut series =
@@ -340,7 +340,7 @@ pub fn write_group(
 /// best prediction's time to preview beside the previews'.
 pub fn write_reports(
     out: &Path,
-    predictions: &[super::global::CellResult],
+    predictions: &[super::common::CellResult],
     cells: &[PreviewCell],
     quiet: bool,
 ) -> Result<()> {
