@@ -151,19 +151,7 @@ impl ScalarLattice {
     /// Trilinear value at `x` (positions outside the lattice are clamped to it).
     #[inline]
     pub fn lookup(&self, x: Vec3) -> f32 {
-        let u = ((x - self.origin) * self.inv_spacing).clamp(Vec3::ZERO, (self.n - UVec3::ONE).as_vec3());
-        let i0 = u.floor().as_uvec3().min(self.n - UVec3::splat(2));
-        let f = u - i0.as_vec3();
-        let (sx, sy) = (1usize, self.n.x as usize);
-        let sz = sy * self.n.y as usize;
-        let base = i0.x as usize + sy * i0.y as usize + sz * i0.z as usize;
-        let d = &self.data;
-        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
-        let c00 = lerp(d[base], d[base + sx], f.x);
-        let c10 = lerp(d[base + sy], d[base + sy + sx], f.x);
-        let c01 = lerp(d[base + sz], d[base + sz + sx], f.x);
-        let c11 = lerp(d[base + sz + sy], d[base + sz + sy + sx], f.x);
-        lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z)
+        trilinear(&self.data, self.n, (x - self.origin) * self.inv_spacing)
     }
 }
 
@@ -248,19 +236,8 @@ impl SunTransmittance {
     #[inline]
     pub fn optical_depth(&self, x: Vec3) -> f32 {
         let q = (Vec3::new(x.dot(self.u), x.dot(self.v), x.dot(self.w)) - self.min) * self.inv_spacing;
-        let q = q.clamp(Vec3::ZERO, (self.n - UVec3::ONE).as_vec3());
-        let i0 = q.floor().as_uvec3().min(self.n - UVec3::splat(2));
-        let f = q - i0.as_vec3();
-        let (sw, su) = (1usize, self.n.z as usize);
-        let sv = su * self.n.x as usize;
-        let base = i0.z as usize + su * i0.x as usize + sv * i0.y as usize;
-        let d = &self.tau;
-        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
-        let c00 = lerp(d[base], d[base + sw], f.z);
-        let c10 = lerp(d[base + su], d[base + su + sw], f.z);
-        let c01 = lerp(d[base + sv], d[base + sv + sw], f.z);
-        let c11 = lerp(d[base + sv + su], d[base + sv + su + sw], f.z);
-        lerp(lerp(c00, c10, f.x), lerp(c01, c11, f.x), f.y)
+        // Stored w fastest, then u, then v.
+        trilinear(&self.tau, UVec3::new(self.n.z, self.n.x, self.n.y), Vec3::new(q.z, q.x, q.y))
     }
 
     /// Transmittance toward the sun at `x`.
@@ -282,6 +259,24 @@ impl SunTransmittance {
     pub fn memory_bytes(&self) -> usize {
         self.tau.len() * 4
     }
+}
+
+/// Trilinear interpolation in a lattice of `n` nodes stored x fastest, at lattice
+/// coordinates `q` (clamped to the lattice; every axis needs two nodes or more).
+#[inline]
+fn trilinear(d: &[f32], n: UVec3, q: Vec3) -> f32 {
+    let q = q.clamp(Vec3::ZERO, (n - UVec3::ONE).as_vec3());
+    let i0 = q.floor().as_uvec3().min(n - UVec3::splat(2));
+    let f = q - i0.as_vec3();
+    let (sx, sy) = (1usize, n.x as usize);
+    let sz = sy * n.y as usize;
+    let base = i0.x as usize + sy * i0.y as usize + sz * i0.z as usize;
+    let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+    let c00 = lerp(d[base], d[base + sx], f.x);
+    let c10 = lerp(d[base + sy], d[base + sy + sx], f.x);
+    let c01 = lerp(d[base + sz], d[base + sz + sx], f.x);
+    let c11 = lerp(d[base + sz + sy], d[base + sz + sy + sx], f.x);
+    lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z)
 }
 
 #[cfg(test)]

@@ -143,15 +143,7 @@ impl GlobalSpec {
                 ),
             ));
         }
-        if !(self.max_rel_error > 0.0 && self.max_rel_error < 1.0) {
-            return Err(setting("--max-rel-error", format!("{} must lie in (0, 1)", self.max_rel_error)));
-        }
-        if !(self.confidence > 0.0 && self.confidence < 1.0) {
-            return Err(setting("--confidence", format!("{} must lie in (0, 1)", self.confidence)));
-        }
-        if self.min_samples == 0 || self.min_samples > self.max_samples {
-            return Err(setting("--min-samples", "must be at least 1 and at most --max-samples"));
-        }
+        Stopping::validate(self.max_rel_error, self.confidence, self.min_samples, self.max_samples)?;
         if self.chunk_size == 0 {
             return Err(setting("--chunk-size", "must be at least 1"));
         }
@@ -159,12 +151,7 @@ impl GlobalSpec {
     }
 
     pub fn stopping(&self) -> Stopping {
-        Stopping {
-            max_rel_error: self.max_rel_error,
-            z: engine::stats::normal_quantile(0.5 + 0.5 * self.confidence),
-            min_samples: self.min_samples,
-            max_samples: self.max_samples,
-        }
+        Stopping::new(self.max_rel_error, self.confidence, self.min_samples, self.max_samples)
     }
 
     /// The feature names, in order.

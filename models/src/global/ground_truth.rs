@@ -5,7 +5,7 @@
 //! sampling that a homogeneous convex medium allows, and confidence-interval stopping
 //! (thesis 2.2.6).
 
-use engine::stats::Welford;
+pub use crate::dataset::stopping::{Estimate, Stopping};
 use engine::{PhaseFunction, Rng};
 use glam::{Mat3, Vec3};
 
@@ -164,34 +164,7 @@ pub fn sample_in_scattered_with(m: &ConvexMedium, omega_l: Vec3, x: Vec3, wo: Ve
     }
 }
 
-/// When to stop adding samples (thesis 2.2.6).
-#[derive(Clone, Copy, Debug)]
-pub struct Stopping {
-    /// Maximum relative half-width of the confidence interval (thesis default 0.05).
-    pub max_rel_error: f64,
-    /// z of the confidence level (1.96 for 95 %).
-    pub z: f64,
-    pub min_samples: u64,
-    pub max_samples: u64,
-}
-
-impl Default for Stopping {
-    fn default() -> Self {
-        Stopping { max_rel_error: 0.05, z: 1.96, min_samples: 1_000, max_samples: 10_000_000 }
-    }
-}
-
-/// One data point's target.
-#[derive(Clone, Copy, Debug)]
-pub struct Estimate {
-    pub mean: f64,
-    pub std_error: f64,
-    pub samples: u64,
-}
-
-/// Estimates L_i with confidence-interval stopping: samples are added (in batches of
-/// 256, checked between batches) until z * se / mean <= max_rel_error, with at least
-/// `min_samples` and at most `max_samples`.
+/// Estimates L_i with confidence-interval stopping, in batches of 256 samples.
 pub fn estimate_in_scattered(
     m: &ConvexMedium,
     omega_l: Vec3,
@@ -200,22 +173,13 @@ pub fn estimate_in_scattered(
     stop: &Stopping,
     rng: &mut Rng,
 ) -> Estimate {
-    let mut w = Welford::default();
-    loop {
-        for _ in 0..256 {
-            w.add(sample_in_scattered(m, omega_l, x, wo, rng) as f64);
-        }
-        let done = w.n >= stop.min_samples && w.mean > 0.0 && stop.z * w.std_error() <= stop.max_rel_error * w.mean;
-        if done || w.n >= stop.max_samples {
-            return Estimate { mean: w.mean, std_error: w.std_error(), samples: w.n };
-        }
-    }
+    stop.estimate(256, || sample_in_scattered(m, omega_l, x, wo, rng) as f64)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use engine::stats::z_bound;
+    use engine::stats::{Welford, z_bound};
 
     #[test]
     fn exit_distances_are_exact() {

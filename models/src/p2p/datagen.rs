@@ -15,8 +15,8 @@ use super::frame::LocalFrame;
 use super::pyramid::DensityPyramid;
 use crate::dataset::chunks;
 use crate::dataset::manifest::{DataSpec, DatagenError, Manifest, Shard, setting};
+use crate::dataset::stopping::Stopping;
 use engine::integrator::p2p::{P2pSettings, sample_query_end, sample_transport};
-use engine::stats::Welford;
 use engine::{DensityGrid, Medium, P2pQuery, PhaseFunction, Rng};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -84,10 +84,7 @@ impl P2pSpec {
         if self.k == 0 || self.rotations == 0 || self.chunk_size == 0 {
             return Err(setting("--k / --rotations / --chunk-size", "must be at least 1"));
         }
-        if !(self.max_rel_error > 0.0 && self.confidence > 0.0 && self.confidence < 1.0) {
-            return Err(setting("--max-rel-error / --confidence", "must be positive (confidence below 1)"));
-        }
-        Ok(())
+        Stopping::validate(self.max_rel_error, self.confidence, self.min_samples, self.max_samples)
     }
     pub fn rows(&self) -> u64 {
         self.points * self.rotations as u64
@@ -110,18 +107,9 @@ pub fn generate_point(spec: &P2pSpec, medium: &Medium, pyramid: &DensityPyramid,
             }
         }
     };
-    let z = engine::stats::normal_quantile(0.5 + 0.5 * spec.confidence);
     let set = P2pSettings::default();
-    let mut w = Welford::default();
-    loop {
-        for _ in 0..64 {
-            w.add(sample_transport(medium, &q, &set, &mut rng) as f64);
-        }
-        let done = w.n >= spec.min_samples && w.mean > 0.0 && z * w.std_error() <= spec.max_rel_error * w.mean;
-        if done || w.n >= spec.max_samples {
-            break;
-        }
-    }
+    let stop = Stopping::new(spec.max_rel_error, spec.confidence, spec.min_samples, spec.max_samples);
+    let w = stop.estimate(64, || sample_transport(medium, &q, &set, &mut rng) as f64);
     let dist = (q.sensor - q.emitter).length();
     let n_f = spec.n_features();
     let mut rows = vec![0.0f32; spec.rotations as usize * (n_f + 5)];
@@ -131,13 +119,13 @@ pub fn generate_point(spec: &P2pSpec, medium: &Medium, pyramid: &DensityPyramid,
         spec.features.write(pyramid, spec.rho, spec.albedo, &frame, &mut row[..n_f]);
         row[n_f..].copy_from_slice(&[
             w.mean as f32,
-            w.std_error() as f32,
-            w.n as f32,
+            w.std_error as f32,
+            w.samples as f32,
             dist,
             (w.mean * (dist as f64).powi(2)) as f32,
         ]);
     }
-    (rows, w.n)
+    (rows, w.samples)
 }
 
 /// Generates (or resumes) this shard's chunks in `dir` from the cloud `grid` (see
