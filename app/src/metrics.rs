@@ -155,6 +155,15 @@ pub fn reference_noise(reference: &Image, mask: &[bool]) -> f64 {
     if mean > 0.0 { ttuv(&reference.var, mask, 1.0).sqrt() / mean } else { f64::INFINITY }
 }
 
+/// The absolute error of `a` against `b` per pixel (mean over the channels) in false
+/// colour, yellow at `scale`.
+pub fn error_colours(a: &[[f32; 3]], b: &[[f32; 3]], scale: f64) -> Vec<[u8; 3]> {
+    a.iter()
+        .zip(b)
+        .map(|(a, b)| false_colour((avg3(&std::array::from_fn(|c| (a[c] - b[c]).abs())) / scale) as f32))
+        .collect()
+}
+
 /// False colour for t in [0, 1]: black, purple, orange, yellow (an inferno-like ramp).
 pub fn false_colour(t: f32) -> [u8; 3] {
     const STOPS: [[f32; 3]; 5] =

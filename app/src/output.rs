@@ -7,9 +7,12 @@ use engine::{Buffer, DensityGrid, Film};
 use std::path::Path;
 
 /// Runs `write` on a temporary file, then renames it to `path`
-/// ([`models::dataset::npy::write_atomically`]), naming the file in the error.
+/// ([`models::dataset::npy::write_atomically`]); every error names the file once
+/// (that helper's own do already).
 pub fn write_atomically(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-    models::dataset::npy::write_atomically(path, write).with_context(|| format!("cannot write {}", path.display()))
+    models::dataset::npy::write_atomically(path, |tmp| {
+        write(tmp).with_context(|| format!("cannot write {}", path.display()))
+    })
 }
 
 /// Creates directory `dir` and its parents, naming it in the error.
@@ -17,10 +20,9 @@ pub fn create_dir(dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create directory {}", dir.display()))
 }
 
-/// Writes bytes atomically.
+/// Writes bytes atomically (the error names the file).
 pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    models::dataset::npy::write_bytes_atomically(path, bytes)
-        .with_context(|| format!("cannot write {}", path.display()))
+    Ok(models::dataset::npy::write_bytes_atomically(path, bytes)?)
 }
 
 /// One named RGB layer of an EXR file.
@@ -126,6 +128,11 @@ impl ToneMap {
         };
         let s = if y <= 0.003_130_8 { 12.92 * y } else { 1.055 * y.powf(1.0 / 2.4) - 0.055 };
         (s * 255.0 + 0.5).clamp(0.0, 255.0) as u8
+    }
+
+    /// Tone-mapped 8-bit RGB pixels.
+    pub fn to_rgb8(&self, rgb: &[[f32; 3]], exposure_ev: f32) -> Vec<[u8; 3]> {
+        rgb.iter().map(|p| p.map(|v| self.apply(v, exposure_ev))).collect()
     }
 
     /// Display RGBA8 pixels of a linear image.

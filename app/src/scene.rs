@@ -28,8 +28,9 @@ use engine::{
     Camera, DensityGrid, InScatterPredictor, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene, Sky, Sun,
 };
 use glam::Vec3;
-use models::global::{BoundGlobalModel, GlobalModel, ModelError};
+use models::global::ModelError;
 use models::p2p::model::{BoundP2pModel, P2pModel};
+use models::prediction::{PredictionModel, PredictorKind};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -216,10 +217,17 @@ pub struct RenderDesc {
     pub mode: String,
     /// Prediction probability for mode = "predict", (0, 1]. Default 0.25.
     pub p: f32,
-    /// A global model (.safetensors with its .json sidecar) for mode = "predict",
-    /// relative to the scene file. Default: the shipped model, compiled into nimbus.
+    /// A model of prediction at bounce k (.safetensors with its .json sidecar, a
+    /// cloud-aware or a global model, as its sidecar says) for mode = "predict" and
+    /// the learned preview, relative to the scene file. Default: the shipped model of
+    /// `render.predictor`, compiled into nimbus.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub model: Option<String>,
+    /// The shipped model used when `render.model` is unset: "global" (the thesis's
+    /// global model, the default) or "cloud" (the cloud-aware model,
+    /// docs/cloud-model.md).
+    #[serde(skip_serializing_if = "is_global")]
+    pub predictor: String,
     /// Light transport: "path" (unidirectional path tracing, the default) or "bdpt"
     /// (volumetric bidirectional path tracing with MIS). With mode = "predict",
     /// "path" predicts at bounce k with the global model (thesis ch. 5) and "bdpt"
@@ -265,6 +273,10 @@ pub struct RenderDesc {
     pub octave_c: f32,
 }
 
+fn is_global(s: &str) -> bool {
+    s == "global"
+}
+
 fn is_learned(s: &str) -> bool {
     s == "learned"
 }
@@ -306,6 +318,7 @@ impl Default for RenderDesc {
             mode: "reference".into(),
             p: 0.25,
             model: None,
+            predictor: "global".into(),
             integrator: "path".into(),
             p2p_model: None,
             r: engine::integrator::bdpt::Prediction::DEFAULT_R,
@@ -496,6 +509,13 @@ impl SceneFile {
                 )));
             }
         }
+        if PredictorKind::parse(&self.render.predictor).is_none() {
+            return Err(SceneError::Invalid(format!(
+                "render.predictor = \"{}\" is unknown; choose {}",
+                self.render.predictor,
+                PredictorKind::NAMES
+            )));
+        }
         if !matches!(self.render.preview.as_str(), "learned" | "octaves") {
             return Err(SceneError::Invalid(format!(
                 "render.preview = \"{}\" is unknown; choose learned or octaves",
@@ -651,12 +671,15 @@ impl SceneFile {
         })
     }
 
-    /// The global model of prediction mode: `render.model`, else the shipped one.
-    pub fn load_model(&self) -> Result<Arc<GlobalModel>, ModelError> {
-        match self.model_path() {
-            Some(path) => GlobalModel::load(&path).map(Arc::new),
-            None => GlobalModel::shipped(),
-        }
+    /// The shipped model `render.predictor` names.
+    pub fn predictor_kind(&self) -> PredictorKind {
+        PredictorKind::parse(&self.render.predictor).unwrap_or_default()
+    }
+
+    /// The model of prediction mode: `render.model`, else the shipped one of
+    /// `render.predictor`.
+    pub fn load_model(&self) -> Result<PredictionModel, ModelError> {
+        PredictionModel::load_or_shipped(self.model_path().as_deref(), self.predictor_kind())
     }
 
     /// The integrator for the built `scene`. In prediction mode the model is loaded
@@ -696,7 +719,7 @@ impl SceneFile {
         }
         match self.load_model() {
             Ok(model) => {
-                let bound = Arc::new(BoundGlobalModel::new(model, &scene.medium, sun, max_nodes));
+                let bound = model.bind(&scene.medium, sun, max_nodes);
                 cache.last = Some((key, bound.clone()));
                 Ok(IntegratorSetup { integrator: self.integrator_with(Some(bound))?, warning: None })
             }
@@ -733,11 +756,14 @@ impl SceneFile {
     ) -> Result<IntegratorSetup, SceneError> {
         let err = |e: String| SceneError::Invalid(format!("render: {e}"));
         let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("the preview needs a sun".into()))?;
-        let key = PredictorKey { model: None, ..PredictorKey::new(self, scene, 0) };
+        // The sun's field: 4 nodes per depth-field node per axis (256 at the default
+        // 64, the field's own default; 96 for the window's coarse 24).
+        let sun_nodes = (4 * max_nodes).clamp(2, SunTransmittance::DEFAULT_MAX_NODES);
+        let key = PredictorKey { model: None, ..PredictorKey::new(self, scene, sun_nodes) };
         let field = match &cache.sun {
             Some((k, f)) if *k == key => f.clone(),
             _ => {
-                let f = Arc::new(SunTransmittance::build(&scene.medium, sun, SunTransmittance::DEFAULT_MAX_NODES));
+                let f = Arc::new(SunTransmittance::build(&scene.medium, sun, sun_nodes));
                 cache.sun = Some((key, f.clone()));
                 f
             }
@@ -827,6 +853,7 @@ struct PredictorKey {
     rho: u32,
     sun: [u32; 3],
     model: Option<PathBuf>,
+    predictor: &'static str,
     nodes: u32,
 }
 
@@ -834,7 +861,7 @@ struct PredictorKey {
 /// grid alive, so the grid's address cannot be reused by another cloud meanwhile.
 #[derive(Default)]
 pub struct PredictorCache {
-    last: Option<(PredictorKey, Arc<BoundGlobalModel>)>,
+    last: Option<(PredictorKey, Arc<dyn InScatterPredictor>)>,
     p2p: Option<(PredictorKey, Arc<BoundP2pModel>)>,
     /// The preview's sun transmittance (keyed by cloud, rho and sun; no model).
     sun: Option<(PredictorKey, Arc<SunTransmittance>)>,
@@ -852,6 +879,7 @@ impl PredictorKey {
             rho: scene.medium.rho().to_bits(),
             sun: scene.sun.map(|s| s.direction().to_array().map(f32::to_bits)).unwrap_or_default(),
             model: file.model_path(),
+            predictor: file.predictor_kind().name(),
             nodes,
         }
     }
@@ -876,6 +904,41 @@ mod tests {
     use super::*;
 
     const MINIMAL: &str = "[grid]\nbuiltin = \"cumulus\"\nresolution = 16\n";
+
+    /// `render.predictor` picks the shipped model of prediction at bounce k: the
+    /// global one by default (and not written back), the cloud-aware one by name;
+    /// both predict multiple scattering only; a model file of either kind is taken by
+    /// its sidecar; an unknown name is refused.
+    #[test]
+    fn the_predictor_key_picks_the_shipped_model() {
+        let text = format!("{MINIMAL}[render]\nmode = \"predict\"\n");
+        let s = SceneFile::from_toml_str(&text, "t").unwrap();
+        assert_eq!(s.render.predictor, "global");
+        assert!(!s.to_toml().contains("predictor"));
+        let scene = s.build_scene(None).unwrap();
+        let name = |f: &SceneFile| {
+            let setup = f.integrator(&scene, 16).unwrap();
+            assert!(setup.warning.is_none(), "{:?}", setup.warning);
+            let p = setup.integrator.predictor().expect("a predictor");
+            assert!(!p.predicts_single_scattering());
+            p.name().to_string()
+        };
+        assert!(name(&s).contains("global"), "{}", name(&s));
+        let mut cloud = s.clone();
+        cloud.render.predictor = "cloud".into();
+        cloud.validate().unwrap();
+        assert!(name(&cloud).contains("cloud-aware"), "{}", name(&cloud));
+        assert!(cloud.to_toml().contains("predictor = \"cloud\""));
+        // The model file names its kind, whatever render.predictor says.
+        let mut file = s.clone();
+        file.render.model =
+            Some(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/cloud.safetensors").to_string());
+        assert!(name(&file).contains("cloud-aware"), "{}", name(&file));
+        let mut bad = s.clone();
+        bad.render.predictor = "deep".into();
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(e.contains("render.predictor") && e.contains("cloud"), "{e}");
+    }
 
     /// BDPT prediction loads the shipped point-to-point model without any file, splits
     /// the buffers at 2k + 1, warns about a medium the model was not trained for,

@@ -51,11 +51,13 @@ pub fn optical_depth_sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing:
     let steps = (h / voxel).ceil().max(1.0) as u32;
     let dt = h / steps as f32;
     let rho = medium.rho();
+    let cap = medium.density_cap();
     let idx = |p: [u32; 3]| (p[0] + n.x * (p[1] + n.y * p[2])) as usize;
     // Lateral shift of the upstream point, in nodes of axes b and c.
     let shift_b = h * d[b] / spacing[b];
     let shift_c = h * d[c] / spacing[c];
     let na = n[a];
+    let (mb, mc) = ((n[b] - 1) as f32, (n[c] - 1) as f32);
     let mut slice = vec![0.0f32; (n[b] * n[c]) as usize];
     // Slices from the exit side inward; the exit slice itself keeps tau = 0 (rays from
     // it leave the support at once).
@@ -74,12 +76,11 @@ pub fn optical_depth_sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing:
                 let x = support.min + Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32) * spacing;
                 let mut sum = 0.0f32;
                 for k in 0..steps {
-                    sum += medium.grid().lookup(x + d * ((k as f32 + 0.5) * dt));
+                    sum += medium.grid().lookup(x + d * ((k as f32 + 0.5) * dt)).min(cap);
                 }
                 let mut t = sum * dt * rho;
                 // Upstream value: bilinear in slice s_up at (i + shift_b, j + shift_c).
                 let (ub, uc) = (i as f32 + shift_b, j as f32 + shift_c);
-                let (mb, mc) = ((n[b] - 1) as f32, (n[c] - 1) as f32);
                 if ub >= 0.0 && uc >= 0.0 && ub <= mb && uc <= mc {
                     let (ib, ic) = ((ub.floor() as u32).min(n[b] - 2), (uc.floor() as u32).min(n[c] - 2));
                     let (fb, fc) = (ub - ib as f32, uc - ic as f32);
@@ -112,7 +113,7 @@ pub fn optical_depth_sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing:
 }
 
 /// One value per node of a lattice over a box, read by trilinear interpolation.
-#[derive(Clone, Debug)]
+#[derive(Clone)]
 pub struct ScalarLattice {
     n: UVec3,
     origin: Vec3,
@@ -132,16 +133,6 @@ impl ScalarLattice {
     /// Nodes per axis.
     pub fn nodes(&self) -> UVec3 {
         self.n
-    }
-
-    /// The value at node (i, j, k).
-    pub fn node(&self, i: u32, j: u32, k: u32) -> f32 {
-        self.data[(i + self.n.x * (j + self.n.y * k)) as usize]
-    }
-
-    /// World position of node (i, j, k).
-    pub fn node_position(&self, i: u32, j: u32, k: u32) -> Vec3 {
-        self.origin + UVec3::new(i, j, k).as_vec3() / self.inv_spacing
     }
 
     pub fn memory_bytes(&self) -> usize {
@@ -166,7 +157,7 @@ impl ScalarLattice {
 /// projection onto the light frame with one node per voxel edge, capped at
 /// `max_nodes` per axis (a 128^3 grid under an oblique sun takes about 11 M nodes,
 /// 44 MiB).
-#[derive(Clone, Debug)]
+#[derive(Clone)]
 pub struct SunTransmittance {
     /// The light frame: u, v across the light, w toward the sun.
     u: Vec3,
@@ -261,6 +252,19 @@ impl SunTransmittance {
     }
 }
 
+/// Lattices print their size, not their values.
+impl std::fmt::Debug for ScalarLattice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "ScalarLattice({} nodes, {} bytes)", self.n, self.memory_bytes())
+    }
+}
+
+impl std::fmt::Debug for SunTransmittance {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "SunTransmittance({} nodes toward {}, {} bytes)", self.n, self.w, self.memory_bytes())
+    }
+}
+
 /// Trilinear interpolation in a lattice of `n` nodes stored x fastest, at lattice
 /// coordinates `q` (clamped to the lattice; every axis needs two nodes or more).
 #[inline]
@@ -323,6 +327,32 @@ mod tests {
             let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
             let again = one.install(|| SunTransmittance::build(&m, &sun, 64));
             assert!(field.tau.iter().zip(&again.tau).all(|(a, b)| a.to_bits() == b.to_bits()));
+        }
+    }
+
+    /// Voxels of the largest float are capped in the slice sweep as in sigma_t: its
+    /// optical depths stay finite and large behind them (uncapped, the sums overflow
+    /// to infinity and the upstream interpolation spreads NaN).
+    #[test]
+    fn a_huge_density_keeps_the_sweep_finite() {
+        let n = 16u32;
+        let mut data = vec![0.5f32; (n * n * n) as usize];
+        // A block of 4^3 voxels at the largest float around the centre.
+        for z in 6..10 {
+            for y in 6..10 {
+                for x in 6..10 {
+                    data[(x + n * (y + n * z)) as usize] = f32::MAX;
+                }
+            }
+        }
+        let grid =
+            DensityGrid::from_bounds(UVec3::splat(n), data, Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5))).unwrap();
+        let m = Medium::new(Arc::new(grid), 40.0, 1.0, PhaseFunction::Isotropic).unwrap();
+        let (nodes, spacing) = lattice_over(&m, 64);
+        for dir in [Vec3::Y, Vec3::new(0.4, 0.8, 0.3).normalize()] {
+            let tau = optical_depth_sweep(&m, m.grid().support_bounds(), nodes, spacing, dir);
+            assert!(tau.iter().all(|t| t.is_finite() && *t >= 0.0), "toward {dir}");
+            assert!(tau.iter().cloned().fold(0.0f32, f32::max) > 30.0, "toward {dir}: the block is opaque");
         }
     }
 

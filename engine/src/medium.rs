@@ -72,14 +72,28 @@ impl MajorantGrid {
         self.dims
     }
 
-    /// The majorant density of the cell that holds `p` (0 outside the grid's support).
-    pub fn at(&self, p: Vec3) -> f32 {
-        if !self.bounds.contains(p) {
+    /// The largest majorant density over the cells that overlap `b` (0 where `b` lies
+    /// outside the grid's support).
+    pub fn max_in(&self, b: Bounds3) -> f32 {
+        let (lo, hi) = (b.min.max(self.bounds.min), b.max.min(self.bounds.max));
+        if !(lo.cmple(hi).all()) {
             return 0.0;
         }
-        let q = (p - self.bounds.min) * self.inv_cell_size;
-        let c = IVec3::new(floor_i32(q.x), floor_i32(q.y), floor_i32(q.z)).clamp(IVec3::ZERO, self.dims.as_ivec3() - 1);
-        self.cell(c)
+        let top = self.dims.as_ivec3() - 1;
+        let cell_of = |p: Vec3| {
+            let q = (p - self.bounds.min) * self.inv_cell_size;
+            IVec3::new(floor_i32(q.x), floor_i32(q.y), floor_i32(q.z)).clamp(IVec3::ZERO, top)
+        };
+        let (c0, c1) = (cell_of(lo), cell_of(hi));
+        let mut m = 0.0f32;
+        for z in c0.z..=c1.z {
+            for y in c0.y..=c1.y {
+                for x in c0.x..=c1.x {
+                    m = m.max(self.cell(IVec3::new(x, y, z)));
+                }
+            }
+        }
+        m
     }
 
     #[inline]
@@ -271,10 +285,6 @@ impl Medium {
     pub fn phase(&self) -> PhaseFunction {
         self.phase
     }
-    /// The largest density (before rho) around `p`: its majorant cell's.
-    pub fn majorant_density_at(&self, p: Vec3) -> f32 {
-        self.majorant.at(p)
-    }
     /// Where sigma_t can be non-zero.
     pub fn bounds(&self) -> Bounds3 {
         self.grid.support_bounds()
@@ -291,6 +301,18 @@ impl Medium {
         self.sigma_cap
     }
 
+    /// The largest density before rho: [`Medium::sigma_cap`] / rho (infinite for
+    /// rho = 0). Every reader of the grid that integrates extinction clamps to it.
+    pub fn density_cap(&self) -> f32 {
+        self.sigma_cap / self.rho
+    }
+
+    /// The extinction majorant of a majorant segment, capped like sigma_t.
+    #[inline]
+    pub fn sigma_maj(&self, seg: &MajorantSegment) -> f32 {
+        (self.rho * seg.max_density).min(self.sigma_cap)
+    }
+
     /// The tracking loop: walks the majorant segments of `o + t d` (d unit length),
     /// samples tentative collisions with the local majorant, and calls
     /// `f(t, p, sigma_t(p), sigma_maj, rng)` at each one. `f` returns false to stop.
@@ -301,7 +323,7 @@ impl Medium {
         F: FnMut(f32, Vec3, f32, f32, &mut Rng) -> bool,
     {
         for seg in self.majorant.segments(o, d, 0.0, t_max) {
-            let sigma_maj = (self.rho * seg.max_density).min(self.sigma_cap);
+            let sigma_maj = self.sigma_maj(&seg);
             if sigma_maj <= 0.0 {
                 continue;
             }
@@ -389,6 +411,7 @@ impl Medium {
     /// (pass `f32::INFINITY` for the full integral).
     pub fn optical_depth(&self, o: Vec3, d: Vec3, t_max: f32, step: f32, tau_stop: f32) -> f32 {
         debug_assert!(step > 0.0);
+        let cap = self.density_cap();
         let mut tau = 0.0f64;
         for seg in self.majorant.segments(o, d, 0.0, t_max) {
             if seg.max_density <= 0.0 {
@@ -401,17 +424,10 @@ impl Medium {
             let n = (len / step).ceil().max(1.0) as u32;
             let h = len / n as f32;
             let mut sum = 0.0f32;
-            if self.rho * seg.max_density <= self.sigma_cap {
-                for i in 0..n {
-                    sum += self.grid.lookup(o + d * (seg.t_min + (i as f32 + 0.5) * h));
-                }
-                tau += (sum * h * self.rho) as f64;
-            } else {
-                for i in 0..n {
-                    sum += self.sigma_t(o + d * (seg.t_min + (i as f32 + 0.5) * h));
-                }
-                tau += (sum * h) as f64;
+            for i in 0..n {
+                sum += self.grid.lookup(o + d * (seg.t_min + (i as f32 + 0.5) * h)).min(cap);
             }
+            tau += (sum * h * self.rho) as f64;
             if tau as f32 > tau_stop {
                 break;
             }
@@ -492,6 +508,32 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// max_in bounds the density at every point of its box, is 0 for a box outside
+    /// the support, and for a box inside one cell is that cell's majorant.
+    #[test]
+    fn max_in_bounds_the_box() {
+        let grid = random_grid(24, 11);
+        let maj = MajorantGrid::new(&grid, 8);
+        let support = grid.support_bounds();
+        let mut rng = Rng::new(12, 0, 0);
+        let mut rv = || Vec3::new(rng.uniform(), rng.uniform(), rng.uniform());
+        for _ in 0..300 {
+            let (a, b) = (support.min + rv() * support.extent(), support.min + rv() * support.extent());
+            let bx = Bounds3::new(a.min(b), a.max(b));
+            let m = maj.max_in(bx);
+            for _ in 0..50 {
+                let p = bx.min + rv() * bx.extent();
+                assert!(grid.lookup(p) <= m, "density {} above max_in {m} at {p}", grid.lookup(p));
+            }
+        }
+        let far = Bounds3::new(support.max + 1.0, support.max + 2.0);
+        assert_eq!(maj.max_in(far), 0.0);
+        // A point box: its own cell's majorant, which the segments report there too.
+        let p = support.min + Vec3::new(0.3, 0.55, 0.7) * support.extent();
+        let seg = maj.segments(p - Vec3::X * 1e-3, Vec3::X, 0.0, 2e-3).next().unwrap();
+        assert_eq!(maj.max_in(Bounds3::new(p, p)), seg.max_density);
     }
 
     /// The majorant bounds the interpolated density everywhere, including the

@@ -127,14 +127,11 @@ impl Renderer {
             .tiles
             .par_iter()
             .map(|&(x0, y0, x1, y1)| {
-                if control.should_abort(generation) {
-                    return None;
-                }
                 let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
                 // BDPT's predictions are evaluated per tile, in one batch.
                 let mut deferred = Vec::new();
                 for y in y0..y1 {
-                    // Checked per row too, so a stop acts within one row of samples.
+                    // Checked per row, so a stop acts within one row of samples.
                     if control.should_abort(generation) {
                         return None;
                     }

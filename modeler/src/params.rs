@@ -107,6 +107,45 @@ fn check_u(name: &'static str, v: u32, lo: u32, hi: u32, range: &'static str) ->
 }
 
 impl CloudParams {
+    /// A random cloud: every parameter drawn over its range from `seed` (uniformly,
+    /// frequencies log-uniformly), with the hierarchy kept to at most 3 levels of at
+    /// most 6 children (about 2,000 spheres at the most, so a cloud builds in well
+    /// under a second) and the noise amplitudes drawn from zero up, so smooth and hard
+    /// clouds, wispy and homogeneous ones all occur. The same seed gives the same
+    /// parameters on any machine.
+    pub fn random(seed: u64) -> CloudParams {
+        let mut rng = engine::Rng::new(seed, 0x636c_6f75_64, 0); // "cloud"
+        let mut u = move || rng.uniform();
+        let lin = |lo: f32, hi: f32, u: f32| lo + (hi - lo) * u;
+        let log = |lo: f32, hi: f32, u: f32| (lo.ln() + (hi.ln() - lo.ln()) * u).exp();
+        let int = |lo: u32, hi: u32, u: f32| (lo + ((hi - lo + 1) as f32 * u) as u32).min(hi);
+        CloudParams {
+            seed: seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 16,
+            roots: int(1, 8, u()),
+            root_radius: lin(0.1, 0.5, u()),
+            root_spread: lin(0.0, 1.0, u()),
+            levels: int(0, 3, u()),
+            children: int(0, 6, u()),
+            radius_ratio: lin(0.3, 0.8, u()),
+            upward_bias: lin(0.0, 2.0, u()),
+            outward_bias: lin(0.0, 2.0, u()),
+            flatten_base: lin(0.0, 1.0, u()),
+            blend: lin(0.0, 0.2, u()),
+            falloff: log(0.002, 0.3, u()),
+            displacement: lin(0.0, 0.12, u()) * u(),
+            frequency: log(1.0, 32.0, u()),
+            octaves: int(1, 6, u()),
+            lacunarity: lin(1.5, 3.0, u()),
+            gain: lin(0.2, 0.8, u()),
+            worley: lin(0.0, 1.0, u()),
+            advection: lin(0.0, 0.2, u()) * u(),
+            advection_frequency: log(0.5, 16.0, u()),
+            interior: lin(0.0, 1.0, u()) * u(),
+            interior_frequency: log(1.0, 32.0, u()),
+            margin: lin(0.02, 0.1, u()),
+        }
+    }
+
     pub fn validate(&self) -> Result<(), ParamError> {
         check_u("roots", self.roots, 1, 8, "1 ..= 8")?;
         check_f("root_radius", self.root_radius, 0.05, 0.5, "0.05 ..= 0.5")?;
@@ -131,5 +170,34 @@ impl CloudParams {
         check_f("interior_frequency", self.interior_frequency, 0.5, 64.0, "0.5 ..= 64")?;
         check_f("margin", self.margin, 0.0, 0.2, "0 ..= 0.2")?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Random clouds are valid, reproducible, and cover the ranges.
+    #[test]
+    fn random_clouds_are_valid_and_reproducible() {
+        let all: Vec<CloudParams> = (0..500).map(CloudParams::random).collect();
+        for (i, p) in all.iter().enumerate() {
+            p.validate().unwrap_or_else(|e| panic!("seed {i}: {e}"));
+            assert_eq!(*p, CloudParams::random(i as u64));
+        }
+        let span = |f: &dyn Fn(&CloudParams) -> f32| {
+            let v: Vec<f32> = all.iter().map(f).collect();
+            (v.iter().copied().fold(f32::INFINITY, f32::min), v.iter().copied().fold(f32::NEG_INFINITY, f32::max))
+        };
+        // Each parameter spreads over most of its drawn range.
+        let (lo, hi) = span(&|p| p.falloff);
+        assert!(lo < 0.004 && hi > 0.2, "falloff {lo}..{hi}");
+        let (lo, hi) = span(&|p| p.roots as f32);
+        assert!(lo == 1.0 && hi == 8.0, "roots {lo}..{hi}");
+        let (lo, hi) = span(&|p| p.interior);
+        assert!(lo < 0.01 && hi > 0.8, "interior {lo}..{hi}");
+        let (lo, hi) = span(&|p| p.levels as f32);
+        assert!(lo == 0.0 && hi == 3.0, "levels {lo}..{hi}");
+        assert_ne!(all[0], all[1]);
     }
 }

@@ -24,6 +24,8 @@ fn small_evaluation_runs_end_to_end() {
         res: 64,
         field_nodes: 33,
         model: None,
+        // The thesis's model, whose bias on this cloud falls with k.
+        predictor: "global".into(),
         preview: true,
         // Path tracing needs about 14,000 spp here (18 % relative noise per pixel at
         // 1,024 spp, toplit, g = 0.85).

@@ -88,3 +88,51 @@ fn compare_mode_renders_the_reference_alongside() {
         assert!(worker.mailbox.lock().unwrap().latest.as_ref().unwrap().reference.is_none(), "{mode} {compare}");
     }
 }
+
+/// What the worker shows for generation `g` until the scene's own render takes over:
+/// each change of which preview stands in (None: the render itself), with the noise of
+/// the image at that moment.
+fn shown_until_handoff(worker: &WorkerHandle, g: u64) -> Vec<(Option<&'static str>, f64)> {
+    let mut seen: Vec<(Option<&'static str>, f64)> = vec![];
+    let start = Instant::now();
+    loop {
+        let p = worker.mailbox.lock().unwrap().latest.clone();
+        if let Some(p) = p.filter(|p| p.generation == g) {
+            let which = p.standing_in.map(|(w, _)| w);
+            if seen.last().is_none_or(|(w, _)| *w != which) {
+                seen.push((which, p.noise));
+            }
+            if which.is_none() {
+                return seen;
+            }
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "no hand-off: {seen:?}");
+        std::thread::sleep(Duration::from_micros(200));
+    }
+}
+
+/// After a change the instant preview comes first (the octaves, then the learned one),
+/// and the scene's own render takes over only once its noise is below the hand-off
+/// level: no image between the change and the preview, and no grainy one after it.
+/// While a slider is dragged, the octaves alone stand in; in compare mode, nothing.
+#[test]
+fn the_preview_stands_in_until_the_render_is_clean() {
+    use app::gui::worker::HANDOFF_NOISE;
+    let worker = WorkerHandle::start(|| {});
+    let mut s = small_scene(10.0);
+    s.render.mode = "predict".into();
+    let seen = shown_until_handoff(&worker, worker.render(&s, false));
+    let order: Vec<_> = seen.iter().map(|(w, _)| *w).collect();
+    assert_eq!(order, [Some("octaves"), Some("learned"), None], "{seen:?}");
+    let (_, handed) = seen.last().unwrap();
+    assert!(*handed <= HANDOFF_NOISE, "the render took over at {handed} noise");
+
+    s.medium.rho = 12.0;
+    let seen = shown_until_handoff(&worker, worker.render(&s, true));
+    let order: Vec<_> = seen.iter().map(|(w, _)| *w).collect();
+    assert_eq!(order, [Some("octaves"), None], "{seen:?}");
+
+    let g = worker.render_compare(&s, false, true);
+    wait_for(|| worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g));
+    assert!(worker.mailbox.lock().unwrap().latest.as_ref().unwrap().standing_in.is_none());
+}

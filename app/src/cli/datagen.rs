@@ -1,9 +1,10 @@
-//! `nimbus datagen global|p2p|merge`: training data for the learned models, with
+//! `nimbus datagen global|p2p|cloud|merge`: training data for the learned models, with
 //! progress, Ctrl-C (finished chunks are kept) and resume, by shards.
 
 use super::common::{DatagenRunArgs, cancel_on_ctrl_c, code_version, init_threads, progress_bar};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
+use models::cloud::CloudSpec;
 use models::dataset::{Counts, DataSpec, Shard, parse_range};
 use models::global::datagen::{self, GlobalSpec, ShapeKind};
 use models::global::directions::DirectionSetKind;
@@ -19,6 +20,10 @@ pub enum DatagenCommand {
     Merge(MergeArgs),
     /// Ground truth for the point-to-point model (thesis 6.3), resumable and shardable.
     P2p(P2pArgs),
+    /// Ground truth for the cloud-aware model: the modeler's presets and random clouds
+    /// under random suns, queries at camera-path vertices, multiple scattering by path
+    /// tracing; one chunk per cloud.
+    Cloud(CloudArgs),
 }
 
 #[derive(Args, Debug)]
@@ -129,9 +134,12 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
         }
         DatagenCommand::Merge(args) => {
             let first = args.shards.first().context("name the shard directories")?;
-            let text = std::fs::read_to_string(first.join("manifest.json")).unwrap_or_default();
-            let points = if text.contains(<models::p2p::P2pSpec as models::dataset::DataSpec>::FORMAT) {
+            let format = models::dataset::manifest::format_of(first);
+            let is = |f: &str| format.as_deref() == Some(f);
+            let points = if is(<models::p2p::P2pSpec as DataSpec>::FORMAT) {
                 models::dataset::merge::<models::p2p::P2pSpec>(&args.shards, &args.out)?.counts.points
+            } else if is(<CloudSpec as DataSpec>::FORMAT) {
+                models::dataset::merge::<CloudSpec>(&args.shards, &args.out)?.counts.points
             } else {
                 models::dataset::merge::<GlobalSpec>(&args.shards, &args.out)?.counts.points
             };
@@ -139,6 +147,23 @@ pub fn datagen(cmd: DatagenCommand) -> Result<()> {
             Ok(())
         }
         DatagenCommand::P2p(args) => datagen_p2p(args),
+        DatagenCommand::Cloud(args) => {
+            let spec = args.spec()?;
+            let run = Run::start(&args.data)?;
+            let what =
+                format!("cloud data set: {} points, {} clouds at {}^3", spec.points, spec.n_chunks(), spec.resolution);
+            run.go(&what, spec.shard_points(run.shard), |progress, cancel| {
+                let m = models::cloud::datagen::generate(
+                    &spec,
+                    run.shard,
+                    &args.data.out,
+                    &code_version(),
+                    progress,
+                    cancel,
+                )?;
+                Ok((m.complete, m.counts))
+            })
+        }
     }
 }
 
@@ -288,4 +313,96 @@ pub struct P2pArgs {
     pub chunk_size: u64,
     #[command(flatten)]
     pub data: DatagenRunArgs,
+}
+
+/// `nimbus datagen cloud`: ground truth for the cloud-aware model.
+#[derive(Args, Debug)]
+pub struct CloudArgs {
+    #[arg(long, default_value_t = 51_200)]
+    pub points: u64,
+    /// Points per cloud (one chunk, the unit of resuming and sharding, per cloud).
+    #[arg(long, default_value_t = 256)]
+    pub points_per_cloud: u64,
+    /// Voxels per axis of each cloud.
+    #[arg(long, default_value_t = 64)]
+    pub resolution: u32,
+    /// Modeler presets among the clouds, comma separated (set-10 .. set-12 are held
+    /// out); "none" for random clouds only.
+    #[arg(
+        long,
+        default_value = "scene-a,scene-b,scene-c,set-01,set-02,set-03,set-04,set-05,set-06,set-07,set-08,set-09"
+    )]
+    pub presets: String,
+    /// Every n-th cloud is a preset (0: none); the others are random.
+    #[arg(long, default_value_t = 4)]
+    pub preset_every: u64,
+    /// Density scale range (log-uniform), MIN..MAX.
+    #[arg(long, default_value = "5..320")]
+    pub rho: String,
+    #[arg(long, default_value = "0.9..1")]
+    pub albedo: String,
+    /// Henyey-Greenstein g range.
+    #[arg(long, default_value = "0..0.9")]
+    pub g: String,
+    /// Paths per point (the target is their mean; the first is also stored alone).
+    #[arg(long, default_value_t = 16)]
+    pub samples: u64,
+    /// Probabilities that a query is a camera path's 1st, 2nd, 3rd scattering vertex.
+    #[arg(long, default_value = "0.5,0.3,0.2")]
+    pub vertex_weights: String,
+    /// Sun-transmittance field nodes per axis at most.
+    #[arg(long, default_value_t = 128)]
+    pub field_nodes: u32,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Views at a fixed angle to the sun: the cosine between the directions from the
+    /// cloud to the camera and to the sun (1 frontlit, -1 backlit); default: any view.
+    #[arg(long, allow_hyphen_values = true)]
+    pub view_sun_cos: Option<f32>,
+    /// Without --view-sun-cos: the fraction of views within about 15 degrees of the
+    /// sun's axis (frontlit and backlit); the others are uniform.
+    #[arg(long, default_value_t = 0.3)]
+    pub aligned_views: f32,
+    /// Make a held-out set: the held-out presets (set-10 .. set-12) and random clouds
+    /// that no training set draws; --presets is ignored.
+    #[arg(long)]
+    pub held_out: bool,
+    #[command(flatten)]
+    pub data: DatagenRunArgs,
+}
+
+impl CloudArgs {
+    pub fn spec(&self) -> Result<CloudSpec> {
+        let presets = match self.presets.trim() {
+            _ if self.held_out => vec![],
+            "none" | "" => vec![],
+            list => list.split(',').map(|s| s.trim().to_string()).collect(),
+        };
+        let w: Vec<f32> = self
+            .vertex_weights
+            .split(',')
+            .map(|s| s.trim().parse::<f32>().with_context(|| format!("--vertex-weights: {s:?} is not a number")))
+            .collect::<Result<_>>()?;
+        let vertex_weights: [f32; 3] =
+            w.try_into().map_err(|_| anyhow::anyhow!("--vertex-weights: give three weights, such as 0.5,0.3,0.2"))?;
+        let spec = CloudSpec {
+            points: self.points,
+            points_per_cloud: self.points_per_cloud,
+            resolution: self.resolution,
+            preset_every: if presets.is_empty() && !self.held_out { 0 } else { self.preset_every },
+            presets,
+            rho: parse_range("--rho", &self.rho)?,
+            albedo: parse_range("--albedo", &self.albedo)?,
+            g: parse_range("--g", &self.g)?,
+            samples: self.samples,
+            vertex_weights,
+            field_nodes: self.field_nodes,
+            seed: self.seed,
+            view_sun_cos: self.view_sun_cos,
+            aligned_views: self.aligned_views,
+            held_out: self.held_out,
+        };
+        spec.validate()?;
+        Ok(spec)
+    }
 }

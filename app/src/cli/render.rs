@@ -68,9 +68,14 @@ pub struct RenderArgs {
     /// Choose p by minimizing TTUV from 8 pilot passes (see `progressive::auto_p`).
     #[arg(long)]
     pub auto_p: bool,
-    /// The global model (.safetensors + .json sidecar); default: the shipped model.
+    /// The model of prediction at bounce K and of the learned preview (.safetensors +
+    /// .json sidecar, global or cloud-aware); default: the shipped one of --predictor.
     #[arg(long)]
     pub model: Option<PathBuf>,
+    /// The shipped model without --model: global (the thesis's, the default) or cloud
+    /// (the cloud-aware model). Overrides the scene's render.predictor.
+    #[arg(long)]
+    pub predictor: Option<String>,
     /// Light transport: path (default) or bdpt (volumetric bidirectional path
     /// tracing with MIS); overrides the scene's render.integrator.
     #[arg(long, value_name = "path|bdpt")]
@@ -158,6 +163,13 @@ pub fn render(args: RenderArgs) -> Result<()> {
         // Relative to where nimbus runs, like every other path on the command line.
         file.render.model = Some(std::path::absolute(m)?.display().to_string());
     }
+    if let Some(p) = &args.predictor {
+        if models::prediction::PredictorKind::parse(p).is_none() {
+            anyhow::bail!("--predictor {p:?}: choose {}", models::prediction::PredictorKind::NAMES);
+        }
+        file.render.predictor = p.clone();
+        file.load_model().context("--predictor")?;
+    }
     if let Some(m) = &args.p2p_model {
         file.render.p2p_model = Some(std::path::absolute(m)?.display().to_string());
     }
@@ -190,12 +202,12 @@ pub fn render(args: RenderArgs) -> Result<()> {
         integrator = engine::Integrator::new(settings, Some(pred))?;
     }
     let mode = match integrator.settings().mode {
-        _ if integrator.preview_state().is_some() => match integrator.preview_state().map(|p| p.multiple()) {
-            Some(MultipleScattering::Lattice(l)) => format!("preview (learned, lattice {})", l.nodes()),
-            Some(MultipleScattering::Octaves { octaves, a, b, c }) => {
+        _ if let Some(preview) = integrator.preview_state() => match preview.multiple() {
+            MultipleScattering::Lattice(l) => format!("preview (learned, lattice {})", l.nodes()),
+            MultipleScattering::Octaves { octaves, a, b, c } => {
                 format!("preview (octaves {octaves}, a {a}, b {b}, c {c})")
             }
-            _ => "preview (single scattering)".to_string(),
+            MultipleScattering::None => "preview (single scattering)".to_string(),
         },
         engine::Mode::Reference if matches!(integrator.technique(), engine::Technique::Bdpt(_)) => {
             "reference (BDPT)".to_string()
@@ -228,6 +240,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
             c.request_stop();
         })?;
     }
+    let preview_mib = integrator.preview_state().map(|p| p.memory_bytes() as f64 / 1048576.0);
     let outcome = render_spp(scene.clone(), integrator, spp, &control, |done| bar.set_position(done as u64))?;
     bar.finish_and_clear();
     let film = &outcome.film;
@@ -252,6 +265,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
         // between integrators on the same scene and machine.
         "efficiency": 1.0 / (film.relative_noise(Buffer::Full).powi(2) * outcome.render_secs).max(1e-300),
         "mode": mode,
+        // The preview's fields (sun transmittance and learned lattice), in MiB.
+        "preview_fields_mib": preview_mib,
         "out": args.out,
     });
     println!("{summary}");

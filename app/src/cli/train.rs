@@ -1,4 +1,4 @@
-//! `nimbus train global|p2p`: training with candle, a progress bar, Ctrl-C after the
+//! `nimbus train global|p2p|cloud`: training with candle, a progress bar, Ctrl-C after the
 //! current epoch, checkpoints and `--resume`.
 
 use super::common::{RunArgs, cancel_on_ctrl_c, code_version, init_threads, progress_bar};
@@ -19,6 +19,135 @@ pub enum TrainCommand {
     /// Train the point-to-point model (thesis chapter 6) on data sets from
     /// `nimbus datagen p2p`.
     P2p(TrainP2pArgs),
+    /// Train the cloud-aware model on data sets from `nimbus datagen cloud`.
+    Cloud(TrainCloudArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct TrainCloudArgs {
+    /// Data-set directories from `nimbus datagen cloud`.
+    #[arg(required = true)]
+    pub data: Vec<PathBuf>,
+    /// A data set made with `nimbus datagen cloud --held-out`, reported on (never
+    /// trained on).
+    #[arg(long)]
+    pub held_out: Option<PathBuf>,
+    /// Output prefix: PREFIX.safetensors, .json, .loss.csv, .loss.png, .checkpoint/.
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, value_delimiter = ',', default_value = "64,64,64")]
+    pub hidden: Vec<usize>,
+    /// relu, tanh or silu.
+    #[arg(long, default_value = "relu")]
+    pub activation: String,
+    #[arg(long, default_value_t = 20)]
+    pub epochs: usize,
+    #[arg(long, default_value_t = 512)]
+    pub batch: usize,
+    #[arg(long, default_value_t = 2e-3)]
+    pub lr: f64,
+    #[arg(long, default_value_t = 0.85)]
+    pub lr_decay: f64,
+    /// Fraction of the clouds held out as the test split.
+    #[arg(long, default_value_t = 0.1)]
+    pub test_fraction: f64,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// mean (the mean of each point's paths) or one-path (the first path alone).
+    #[arg(long, default_value = "mean")]
+    pub target: String,
+    /// eps of the relative loss, in units of (4 pi L_ms)^2.
+    #[arg(long, default_value_t = 2.5e-3)]
+    pub eps: f32,
+    /// Train on at most this many points (0: all).
+    #[arg(long, default_value_t = 0)]
+    pub max_points: usize,
+    /// Continue from PREFIX.checkpoint/ (same settings and data).
+    #[arg(long)]
+    pub resume: bool,
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+fn train_cloud(args: TrainCloudArgs) -> Result<()> {
+    use models::cloud::train::{BiasReport, CloudTrainConfig, CloudTrainData, TargetColumn};
+    let cfg = CloudTrainConfig {
+        schedule: models::nn::fit::FitSchedule {
+            hidden: args.hidden.clone(),
+            activation: Activation::parse(&args.activation)
+                .with_context(|| format!("--activation: unknown {:?} (relu, tanh, silu)", args.activation))?,
+            epochs: args.epochs,
+            batch: args.batch,
+            optimizer: Optimizer::Adam,
+            lr: args.lr,
+            lr_decay: args.lr_decay,
+            seed: args.seed,
+        },
+        test_fraction: args.test_fraction,
+        target: TargetColumn::parse(&args.target)
+            .with_context(|| format!("--target {:?}: choose mean or one-path", args.target))?,
+        eps: args.eps,
+        max_points: args.max_points,
+    };
+    cfg.validate()?;
+    let threads = init_threads(args.run.threads)?;
+    let t = std::time::Instant::now();
+    let data = CloudTrainData::load(&args.data)?;
+    let held_out = match &args.held_out {
+        Some(d) => {
+            let ds = models::cloud::datagen::CloudDataset::load(d)?;
+            if !ds.manifest.settings.held_out {
+                bail!(
+                    "--held-out {}: not a held-out data set (make one with nimbus datagen cloud --held-out)",
+                    d.display()
+                );
+            }
+            Some(ds)
+        }
+        None => None,
+    };
+    eprintln!(
+        "{} points from {} data set(s), loaded in {:.1} s; {threads} threads",
+        data.len(),
+        args.data.len(),
+        t.elapsed().as_secs_f64()
+    );
+    let bar = progress_bar(1, "batches", args.run.quiet);
+    let cancel = cancel_on_ctrl_c("stopping: the last finished epoch is checkpointed; continue with --resume");
+    let command: Vec<String> = std::env::args().collect();
+    let observer = BarObserver { bar, cancel };
+    let (_, report) = models::cloud::train::train(
+        &data,
+        held_out.as_ref(),
+        &cfg,
+        &args.out,
+        args.resume,
+        &command.join(" "),
+        &code_version(),
+        &observer,
+    )?;
+    observer.bar.finish_and_clear();
+    let line = |what: &str, b: &BiasReport| {
+        println!(
+            "{what}: {} points of {} clouds, relative bias {:+.2} % (+- {:.2} %), per cloud |bias| median {:.2} %, p90 {:.2} %",
+            b.points,
+            b.clouds,
+            100.0 * b.bias,
+            100.0 * b.bias_std_error,
+            100.0 * b.cloud_abs_bias_median,
+            100.0 * b.cloud_abs_bias_p90
+        )
+    };
+    println!(
+        "trained on {} points in {:.1} s ({:.0} samples/s)",
+        report.train_points, report.seconds, report.samples_per_second
+    );
+    line("test clouds", &report.test);
+    if let Some(h) = &report.held_out {
+        line("held-out clouds", h);
+    }
+    println!("wrote {}.safetensors, .json, .loss.csv, .loss.png", args.out.display());
+    Ok(())
 }
 
 #[derive(Args, Debug)]
@@ -203,6 +332,7 @@ pub fn train(cmd: TrainCommand) -> Result<()> {
     let args = match cmd {
         TrainCommand::Global(args) => args,
         TrainCommand::P2p(args) => return train_p2p(args),
+        TrainCommand::Cloud(args) => return train_cloud(args),
     };
     let cfg = args.config()?;
     let threads = init_threads(args.run.threads)?;

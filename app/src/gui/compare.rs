@@ -8,7 +8,7 @@
 //! it the published films (shared, not copied) and only uploads the finished images.
 
 use super::worker::Published;
-use crate::metrics::{Image, bias, false_colour, lit_mean};
+use crate::metrics::{Image, bias, error_colours, false_colour, lit_mean};
 use crate::output::ToneMap;
 use eframe::egui;
 use engine::{Buffer, Film};
@@ -87,16 +87,9 @@ fn texture(ctx: &egui::Context, slot: &mut Option<egui::TextureHandle>, name: &s
 fn prepare(key: Key, film: &Film, reference: &Film, tone: ToneMap, exposure: f32, buffer: Buffer) -> Prepared {
     let (w, h) = (film.width(), film.height());
     let (pred_high, ref_high) = (film.mean(Buffer::High), reference.mean(Buffer::High));
-    let error_scale = (lit_mean(&ref_high) as f32).max(1e-6);
-    let error: Vec<u8> = pred_high
-        .iter()
-        .zip(&ref_high)
-        .flat_map(|(a, b)| {
-            let e = (0..3).map(|c| (a[c] - b[c]).abs()).sum::<f32>() / 3.0;
-            let [r, g, bl] = false_colour(e / error_scale);
-            [r, g, bl, 255]
-        })
-        .collect();
+    let error_scale = lit_mean(&ref_high).max(1e-6);
+    let error: Vec<u8> =
+        error_colours(&pred_high, &ref_high, error_scale).into_iter().flat_map(|[r, g, b]| [r, g, b, 255]).collect();
     let panels = [
         tone.to_rgba8(&film.mean(Buffer::Low), exposure),
         tone.to_rgba8(&pred_high, exposure),
@@ -113,7 +106,7 @@ fn prepare(key: Key, film: &Film, reference: &Film, tone: ToneMap, exposure: f32
         size: [w as usize, h as usize],
         reference: tone.to_rgba8(&reference.mean(buffer), exposure),
         panels,
-        error_scale,
+        error_scale: error_scale as f32,
         bias,
     }
 }

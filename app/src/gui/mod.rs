@@ -654,7 +654,19 @@ impl NimbusApp {
                 ui.radio_value(&mut self.scene.render.mode, "reference".to_string(), "path tracing");
                 ui.radio_value(&mut self.scene.render.mode, "predict".to_string(), "prediction at bounce k")
                     .on_hover_text("vertices 1 .. k-1 path traced, the learned model predicts the rest at vertex k");
+                ui.radio_value(&mut self.scene.render.mode, "preview".to_string(), "instant preview").on_hover_text(
+                    "ray marching: single scattering from the sun's transmittance field, the higher orders from \
+                     the learned model (or the octave approximation); clean at once, biased by the model's error",
+                );
             });
+            if self.scene.render.mode == "preview" {
+                ui.horizontal(|ui| {
+                    ui.label("higher orders");
+                    ui.selectable_value(&mut self.scene.render.preview, "learned".to_string(), "learned");
+                    ui.selectable_value(&mut self.scene.render.preview, "octaves".to_string(), "octaves")
+                        .on_hover_text("Wrenninge et al. 2013: N = 3, a = b = c = 0.5");
+                });
+            }
             ui.horizontal(|ui| {
                 ui.label("algorithm");
                 ui.selectable_value(&mut self.scene.render.integrator, "path".to_string(), "unidirectional");
@@ -902,14 +914,35 @@ impl NimbusApp {
         let mb = self.worker.mailbox.lock().unwrap();
         ui.horizontal(|ui| {
             if let Some(p) = &mb.latest {
-                ui.label(format!(
-                    "{} spp   {:.1} s   {:.2} M samples/s   noise {:.1} %{}",
-                    p.film.spp(),
-                    p.render_secs,
-                    p.samples_per_sec / 1e6,
-                    100.0 * p.noise,
-                    if p.coarse { "   (coarse cloud while dragging)" } else { "" }
-                ));
+                match p.standing_in {
+                    Some((which, under)) => {
+                        let render = match under {
+                            Some(n) => format!("render under it at {:.1} % noise", 100.0 * n),
+                            None => "render starting".into(),
+                        };
+                        ui.label(format!(
+                            "instant preview ({which}), {} passes   {:.2} s   {render}, shown below {:.0} %",
+                            p.film.spp(),
+                            p.render_secs,
+                            100.0 * worker::HANDOFF_NOISE
+                        ))
+                        .on_hover_text(
+                            "ray marched single scattering from the sun's transmittance field, higher orders from \
+                             the learned model or the octave approximation; the scene's own render replaces it once \
+                             it is clean",
+                        );
+                    }
+                    None => {
+                        ui.label(format!(
+                            "{} spp   {:.1} s   {:.2} M samples/s   noise {:.1} %{}",
+                            p.film.spp(),
+                            p.render_secs,
+                            p.samples_per_sec / 1e6,
+                            100.0 * p.noise,
+                            if p.coarse { "   (coarse cloud while dragging)" } else { "" }
+                        ));
+                    }
+                }
             } else {
                 ui.label("starting…");
             }

@@ -2,6 +2,13 @@
 //! from the UI over a channel, and publishes finished passes. Nothing renders on the
 //! UI thread. Every change bumps the shared generation counter, so the pass under way
 //! stops at its next tile, and the worker starts over with the new snapshot.
+//!
+//! After every change the window shows the instant preview first: one pass of the
+//! octave approximation at full resolution (a few tens of milliseconds), then, unless
+//! a slider is being dragged, the learned preview, refined for a few passes. The
+//! scene's own render (path tracing or prediction) accumulates meanwhile and takes
+//! over once its relative noise is below [`HANDOFF_NOISE`], so no grainy frame comes
+//! between a change and the preview. A scene in preview mode refines its own preview.
 
 use crate::scene::{PredictorCache, SceneFile};
 use engine::{Buffer, DensityGrid, Film, PassOutcome, RenderControl, Renderer, Scene};
@@ -41,6 +48,27 @@ pub struct Published {
     /// In compare mode: the path-traced reference (same scene, same k, its own seed),
     /// accumulating alongside `film`.
     pub reference: Option<Arc<Film>>,
+    /// `film` is the instant preview standing in for the scene's own render: which
+    /// preview ("octaves", "learned") and the relative noise the render under it has
+    /// reached so far (None before its first pass).
+    pub standing_in: Option<(&'static str, Option<f64>)>,
+}
+
+/// The scene's own render replaces the preview once its relative noise is below this
+/// (the 5 % of a preview in docs/conventions.md).
+pub const HANDOFF_NOISE: f64 = 0.05;
+
+/// Passes of the preview refined while the scene's render catches up; after them,
+/// every pass goes to the render.
+pub const PREVIEW_PASSES: u32 = 8;
+
+/// The instant preview of a job, shown until the render is clean.
+struct Standing {
+    renderer: Renderer,
+    which: &'static str,
+    passes: u32,
+    /// The learned preview's scene, built after the octave preview's first pass.
+    learned: Option<Box<SceneFile>>,
 }
 
 /// A render under way: the scene's renderer and, in compare mode, the reference's.
@@ -53,6 +81,24 @@ struct Job {
     /// Prediction with a coarse depth field while the full one was not built yet:
     /// after the first pass the full field is built and the render starts over with it.
     upgrade: Option<Box<SceneFile>>,
+    /// The preview standing in for `main` (None once `main` is shown).
+    standing: Option<Standing>,
+}
+
+/// The preview of `file` with the higher orders by `which` ("octaves" or "learned"),
+/// its fields at `nodes` (see [`SceneFile::integrator_cached`]).
+fn preview_renderer(
+    file: &SceneFile,
+    scene: Arc<Scene>,
+    which: &str,
+    nodes: u32,
+    cache: &mut PredictorCache,
+) -> Result<Renderer, String> {
+    let mut f = file.clone();
+    f.render.mode = "preview".into();
+    f.render.preview = which.into();
+    let setup = f.integrator_cached(&scene, nodes, cache).map_err(|e| e.to_string())?;
+    Renderer::new(scene, setup.integrator).map_err(|e| e.to_string())
 }
 
 /// Depth-field nodes per axis while a slider moves or before the full field is ready
@@ -171,8 +217,31 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             // one now and the full one after the first pass.
             let full_nodes = models::global::depth_field::DEFAULT_MAX_NODES;
             let mut upgrade = None;
+            let start = Instant::now();
+            let mut standing = None;
             let built = grid.map_err(|e| e.to_string()).and_then(|g| {
                 let built = Arc::new(scene.build_scene(Some(g)).map_err(|e| e.to_string())?);
+                // The instant preview first, before the render's own set-up (not in
+                // compare mode, where the two estimates themselves are the point, nor
+                // for a preview scene whose own render is the octaves).
+                let own = (scene.render.mode == "preview").then(|| scene.render.preview.clone());
+                let comparing = compare && scene.render.mode == "predict";
+                if !comparing && own.as_deref() != Some("octaves") {
+                    let octaves =
+                        preview_renderer(&scene, built.clone(), "octaves", COARSE_FIELD_NODES, &mut predictors);
+                    if let Ok(pr) = octaves {
+                        // A first look at a quarter of the resolution (a few ms), then
+                        // the full one in the loop.
+                        if let Some(film) = quarter_pass(&pr, &control, generation) {
+                            publish_film(&mailbox, generation, film, &pr, Some(("octaves", None)), start, coarse);
+                            wake();
+                        }
+                        // The learned preview follows unless a slider is moving or it
+                        // is the scene's own render anyway.
+                        let learned = (!coarse && own.is_none()).then(|| scene.clone());
+                        standing = Some(Standing { renderer: pr, which: "octaves", passes: 0, learned });
+                    }
+                }
                 // (The point-to-point model of BDPT prediction has no depth field.)
                 let nodes = if coarse || scene.render.mode != "predict" || scene.render.integrator == "bdpt" {
                     COARSE_FIELD_NODES
@@ -187,24 +256,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             match built {
                 Ok((r, reference, warning)) => {
                     mailbox.lock().unwrap().error = warning.map(|w| (generation, w));
-                    let start = Instant::now();
-                    // A quick first look: one pass at a quarter of the resolution, so a
-                    // change shows within a fraction of a full pass.
-                    if let Some(film) = preview(&r, &control, generation) {
-                        let secs = start.elapsed().as_secs_f64();
-                        mailbox.lock().unwrap().latest = Some(Published {
-                            generation,
-                            samples_per_sec: film.pixel_count() as f64 / secs.max(1e-9),
-                            noise: relative_noise(&film),
-                            render_secs: secs,
-                            film: Arc::new(film),
-                            coarse: true,
-                            mode: r.integrator().settings().mode,
-                            reference: None,
-                        });
-                        wake();
-                    }
-                    job = Some(Job { main: r, reference, generation, start, coarse, upgrade });
+                    job = Some(Job { main: r, reference, generation, start, coarse, upgrade, standing });
                 }
                 Err(e) => {
                     mailbox.lock().unwrap().error = Some((generation, e));
@@ -217,6 +269,29 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
         if control.generation() != j.generation {
             job = None; // a newer command is on its way
             continue;
+        }
+        if let Some(st) = &mut j.standing {
+            if st.passes >= 1 && st.learned.is_some() {
+                // The learned preview replaces the octaves after their first full pass
+                // (its lattice is built once for this cloud, sun and camera).
+                let file = st.learned.take().expect("checked");
+                let full = models::global::depth_field::DEFAULT_MAX_NODES;
+                if let Ok(r) = preview_renderer(&file, j.main.scene().clone(), "learned", full, &mut predictors) {
+                    if control.generation() != j.generation {
+                        continue;
+                    }
+                    (st.renderer, st.which, st.passes) = (r, "learned", 0);
+                }
+            }
+            if st.passes < PREVIEW_PASSES {
+                if st.renderer.render_pass(&control, j.generation) != PassOutcome::Completed {
+                    continue;
+                }
+                st.passes += 1;
+                let under = (j.main.spp() > 0).then(|| relative_noise(&j.main.snapshot()));
+                publish_preview(&mailbox, j.generation, &st.renderer, st.which, under, j.start, j.coarse);
+                wake();
+            }
         }
         if j.main.render_pass(&control, j.generation) != PassOutcome::Completed {
             continue;
@@ -241,6 +316,18 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
         }
         let film = Arc::new(j.main.snapshot());
         let secs = j.start.elapsed().as_secs_f64();
+        if let Some(st) = &j.standing {
+            let noise = relative_noise(&film);
+            if noise > HANDOFF_NOISE {
+                // The preview stays on screen; say how far the render under it is.
+                if st.passes >= PREVIEW_PASSES {
+                    publish_preview(&mailbox, j.generation, &st.renderer, st.which, Some(noise), j.start, j.coarse);
+                    wake();
+                }
+                continue;
+            }
+            j.standing = None;
+        }
         // Both renders' camera samples in compare mode.
         let passes = film.spp() as f64 * if j.reference.is_some() { 2.0 } else { 1.0 };
         let published = Published {
@@ -252,15 +339,29 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             coarse: j.coarse,
             mode: j.main.integrator().settings().mode,
             reference: j.reference.as_ref().map(|r| Arc::new(r.snapshot())),
+            standing_in: None,
         };
         mailbox.lock().unwrap().latest = Some(published);
         wake();
     }
 }
 
-/// One pass of the renderer's scene at a quarter of its resolution (None if the image
-/// is already small, or the pass was cancelled).
-fn preview(full: &Renderer, control: &RenderControl, generation: u64) -> Option<Film> {
+/// Publishes the preview `r` as the image standing in for the render.
+fn publish_preview(
+    mailbox: &Mutex<Mailbox>,
+    generation: u64,
+    r: &Renderer,
+    which: &'static str,
+    under: Option<f64>,
+    start: Instant,
+    coarse: bool,
+) {
+    publish_film(mailbox, generation, r.snapshot(), r, Some((which, under)), start, coarse);
+}
+
+/// One pass of `full`'s scene at a quarter of its resolution (None if the image is
+/// already small, or the pass was cancelled).
+fn quarter_pass(full: &Renderer, control: &RenderControl, generation: u64) -> Option<Film> {
     let cam = full.scene().camera;
     if cam.width() < 128 || cam.height() < 128 {
         return None;
@@ -269,6 +370,30 @@ fn preview(full: &Renderer, control: &RenderControl, generation: u64) -> Option<
     let scene = engine::Scene { camera: small, ..(**full.scene()).clone() };
     let mut r = Renderer::new(Arc::new(scene), full.integrator().clone()).ok()?;
     (r.render_pass(control, generation) == PassOutcome::Completed).then(|| r.snapshot())
+}
+
+/// Publishes `film`, rendered by `r`'s integrator.
+fn publish_film(
+    mailbox: &Mutex<Mailbox>,
+    generation: u64,
+    film: Film,
+    r: &Renderer,
+    standing_in: Option<(&'static str, Option<f64>)>,
+    start: Instant,
+    coarse: bool,
+) {
+    let secs = start.elapsed().as_secs_f64();
+    mailbox.lock().unwrap().latest = Some(Published {
+        generation,
+        samples_per_sec: film.spp() as f64 * film.pixel_count() as f64 / secs.max(1e-9),
+        noise: relative_noise(&film),
+        render_secs: secs,
+        film: Arc::new(film),
+        coarse,
+        mode: r.integrator().settings().mode,
+        reference: None,
+        standing_in,
+    });
 }
 
 /// The UI's handle on the worker.

@@ -80,7 +80,7 @@ impl std::fmt::Debug for Integrator {
             .field("predictor", &self.predictor.as_ref().map(|p| p.name().to_string()))
             .field("technique", &self.technique)
             .field("transport", &self.transport)
-            .field("preview", &self.preview.as_ref().map(|p| p.multiple().clone()))
+            .field("preview", &self.preview)
             .finish()
     }
 }

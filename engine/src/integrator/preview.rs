@@ -38,6 +38,7 @@
 
 use super::base::PathSample;
 use crate::field::{ScalarLattice, SunTransmittance, lattice_over};
+use crate::grid::Bounds3;
 use crate::medium::Medium;
 use crate::phase::PhaseFunction;
 use crate::predictor::InScatterPredictor;
@@ -115,14 +116,23 @@ impl Preview {
         &self.multiple
     }
 
+    /// Bytes held by the fields: the sun's transmittance and a learned lattice.
+    pub fn memory_bytes(&self) -> usize {
+        let lattice = match &self.multiple {
+            MultipleScattering::Lattice(l) => l.memory_bytes(),
+            _ => 0,
+        };
+        self.sun.memory_bytes() + lattice
+    }
+
     pub fn sun_transmittance(&self) -> &Arc<SunTransmittance> {
         &self.sun
     }
 
     /// L_ms for a unit sun from `predictor` at the nodes of a lattice over the
     /// medium (at most `max_nodes` per axis), with omega the direction from each node
-    /// toward `camera`. Nodes in empty majorant cells are left at 0 (their value only
-    /// ever multiplies a zero density). A predictor of total in-scattered radiance
+    /// toward `camera`. Nodes whose lattice cells are all empty are left at 0 (their
+    /// value only ever multiplies a zero density). A predictor of total in-scattered radiance
     /// gets the single scattering of `sun` subtracted (clamped at 0).
     pub fn learned_lattice(
         scene: &Scene,
@@ -134,15 +144,19 @@ impl Preview {
         let medium = &scene.medium;
         let (n, spacing) = lattice_over(medium, max_nodes);
         let origin = medium.grid().support_bounds().min;
-        let light = scene.sun.as_ref();
+        let nodes = (n.x * n.y * n.z) as usize;
+        let Some(light) = scene.sun.as_ref() else {
+            return ScalarLattice::new(n, origin, spacing, vec![0.0; nodes]);
+        };
         let total = predictor.predicts_single_scattering();
-        let data = (0..n.x * n.y * n.z)
+        let data = (0..nodes as u32)
             .into_par_iter()
             .map(|i| {
                 let (x, y, z) = (i % n.x, (i / n.x) % n.y, i / (n.x * n.y));
                 let p = origin + UVec3::new(x, y, z).as_vec3() * spacing;
-                let Some(light) = light else { return 0.0 };
-                if medium.majorant_density_at(p) <= 0.0 {
+                // A node is read wherever its lattice cells are: it is needed unless
+                // the medium is empty across all of them.
+                if medium.majorant().max_in(Bounds3::new(p - spacing, p + spacing)) <= 0.0 {
                     return 0.0;
                 }
                 let Some(omega) = (camera - p).try_normalize() else { return 0.0 };
@@ -161,10 +175,6 @@ impl Preview {
         let mut out = PathSample::default();
         let offset = rng.uniform();
         let Some(sun) = &scene.sun else {
-            out.direct = scene.sky.radiance;
-            return out;
-        };
-        let Some((t0, t1)) = medium.bounds().intersect(o, d.recip(), 0.0, f32::INFINITY) else {
             out.direct = scene.sky.radiance;
             return out;
         };
@@ -190,8 +200,9 @@ impl Preview {
         };
         let albedo = medium.albedo();
         let (mut tr, mut single, mut multiple) = (1.0f32, 0.0f32, 0.0f32);
-        'march: for seg in medium.majorant().segments(o, d, t0, t1) {
-            let sigma_maj = (medium.rho() * seg.max_density).min(medium.sigma_cap());
+        // A ray that misses the support has no segments: it sees the sky.
+        'march: for seg in medium.majorant().segments(o, d, 0.0, f32::INFINITY) {
+            let sigma_maj = medium.sigma_maj(&seg);
             if sigma_maj <= 0.0 {
                 continue;
             }
@@ -210,12 +221,13 @@ impl Preview {
                 }
                 let absorbed = 1.0 - (-sigma_t * len).exp();
                 let w = tr * absorbed * albedo;
-                let t_sun = self.sun.at(x);
-                single += w * p_single * t_sun;
+                let tau_sun = self.sun.optical_depth(x);
+                single += w * p_single * (-tau_sun).exp();
                 multiple += w * match &self.multiple {
                     MultipleScattering::Lattice(l) => l.lookup(x),
+                    // Octave i sees the sun through a^i of the optical depth.
                     MultipleScattering::Octaves { .. } => {
-                        lobes[..octaves].iter().map(|&(amp, exp)| amp * t_sun.powf(exp)).sum::<f32>()
+                        lobes[..octaves].iter().map(|&(amp, exp)| amp * (-tau_sun * exp).exp()).sum::<f32>()
                     }
                     MultipleScattering::None => 0.0,
                 };

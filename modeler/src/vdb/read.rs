@@ -260,10 +260,11 @@ fn preflight(data: &[u8], path: &str) -> Result<Vec<Descriptor>, VdbReadError> {
         let compression = g.u32().map_err(corrupt)?;
         g.metadata().map_err(corrupt)?;
         let map_type = g.string().map_err(corrupt)?;
-        // The maps whose layout is known: a (uniform) scale map stores five vectors
-        // (scale first), a scale-translate map six (translation first, then scale).
+        // The maps Nimbus imports, the one place they are listed: a uniform scale
+        // map stores five vectors (scale first), a scale-translate map six
+        // (translation first, then scale). Any other map leaves `tree` empty.
         let transform = match map_type.as_str() {
-            "UniformScaleMap" | "ScaleMap" => {
+            "UniformScaleMap" => {
                 let scale = g.dvec3().map_err(corrupt)?;
                 g.take(4 * 24).map_err(corrupt)?;
                 Some((scale, DVec3::ZERO))
@@ -719,9 +720,7 @@ pub fn read_vdb_bytes(data: &[u8], path: &str, name: Option<&str>) -> Result<Vdb
             if d.grid_type.contains("vec3") { " (a vector per voxel, such as a velocity)" } else { "" }
         )));
     }
-    let supported_map =
-        matches!(d.map_type.as_str(), "UniformScaleMap" | "UniformScaleTranslateMap" | "ScaleTranslateMap");
-    let Some(tree) = d.tree.as_ref().filter(|_| supported_map) else {
+    let Some(tree) = d.tree.as_ref() else {
         return Err(unsupported(format!(
             "grid '{}' has a {} transform; Nimbus imports axis-aligned grids (scale and translation only)",
             d.name, d.map_type

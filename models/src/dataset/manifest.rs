@@ -29,6 +29,28 @@ pub(crate) fn setting(flag: &'static str, why: impl Into<String>) -> DatagenErro
     DatagenError::Setting { flag, why: why.into() }
 }
 
+/// The `format` tag of `dir/manifest.json`, or None where there is no readable
+/// manifest (so a caller can pick the data set's type before loading it).
+pub fn format_of(dir: &Path) -> Option<String> {
+    #[derive(Deserialize)]
+    struct Tag {
+        format: String,
+    }
+    let text = std::fs::read_to_string(dir.join("manifest.json")).ok()?;
+    serde_json::from_str::<Tag>(&text).ok().map(|t| t.format)
+}
+
+/// Checks a range setting: not empty, both ends `ok` (`what` says where they must lie).
+pub fn check_range(flag: &'static str, r: [f32; 2], ok: impl Fn(f32) -> bool, what: &str) -> Result<(), DatagenError> {
+    if !(r[0] <= r[1]) {
+        Err(setting(flag, format!("{}..{} is an empty range", r[0], r[1])))
+    } else if !ok(r[0]) || !ok(r[1]) {
+        Err(setting(flag, format!("{}..{} must lie in {what}", r[0], r[1])))
+    } else {
+        Ok(())
+    }
+}
+
 /// Parses "MIN..MAX" or a single value.
 pub fn parse_range(flag: &'static str, s: &str) -> Result<[f32; 2], DatagenError> {
     let parse = |t: &str| {
@@ -187,7 +209,7 @@ impl<S: DataSpec> Manifest<S> {
     pub fn save(&self, dir: &Path) -> Result<(), DatagenError> {
         let path = dir.join("manifest.json");
         let text = serde_json::to_string_pretty(self).expect("manifest serializes");
-        npy::write_bytes_atomically(&path, text.as_bytes()).map_err(|e| DatagenError::File { path, why: e.to_string() })
+        npy::write_bytes_atomically(&path, text.as_bytes()).map_err(|e| DatagenError::Npy(npy::NpyError::Write(e)))
     }
 
     /// Opens `dir`'s manifest to resume it (refusing other settings or another shard,

@@ -64,7 +64,12 @@ pub fn write_atomically<E: From<std::io::Error>>(
     write: impl FnOnce(&Path) -> Result<(), E>,
 ) -> Result<(), E> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| named("cannot create directory", dir, e))?;
+        std::fs::create_dir_all(dir).map_err(|e| {
+            std::io::Error::new(
+                e.kind(),
+                format!("cannot write {}: cannot create directory {}: {e}", path.display(), dir.display()),
+            )
+        })?;
     }
     remove_stale_temporaries(path);
     let tmp = temp_path(path);

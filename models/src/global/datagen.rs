@@ -15,7 +15,7 @@ use super::directions::DirectionSetKind;
 use super::features::FeatureExtractor;
 use super::ground_truth::{ConvexMedium, Shape, Stopping, estimate_in_scattered};
 use crate::dataset::chunks;
-use crate::dataset::manifest::{DataSpec, DatagenError, Manifest, Shard, setting};
+use crate::dataset::manifest::{DataSpec, DatagenError, Manifest, Shard, check_range, setting};
 use crate::dataset::npy;
 use engine::{PhaseFunction, Rng};
 use glam::{Mat3, Quat, Vec3};
@@ -114,19 +114,10 @@ impl GlobalSpec {
         if self.points == 0 {
             return Err(setting("--points", "must be at least 1"));
         }
-        let check = |flag: &'static str, r: [f32; 2], ok: &dyn Fn(f32) -> bool, what: &str| {
-            if !(r[0] <= r[1]) {
-                Err(setting(flag, format!("{}..{} is an empty range", r[0], r[1])))
-            } else if !ok(r[0]) || !ok(r[1]) {
-                Err(setting(flag, format!("{}..{} must lie in {what}", r[0], r[1])))
-            } else {
-                Ok(())
-            }
-        };
-        check("--sigma", self.sigma, &|v| v > 0.0 && v <= 10_000.0, "(0, 10000]")?;
-        check("--albedo", self.albedo, &|v| (0.0..=1.0).contains(&v), "[0, 1]")?;
-        check("--g", self.g, &|v| v > -1.0 && v < 1.0, "(-1, 1)")?;
-        check("--scale", self.scale, &|v| v >= 0.01 && v <= 100.0, "[0.01, 100]")?;
+        check_range("--sigma", self.sigma, |v| v > 0.0 && v <= 10_000.0, "(0, 10000]")?;
+        check_range("--albedo", self.albedo, |v| (0.0..=1.0).contains(&v), "[0, 1]")?;
+        check_range("--g", self.g, |v| v > -1.0 && v < 1.0, "(-1, 1)")?;
+        check_range("--scale", self.scale, |v| v >= 0.01 && v <= 100.0, "[0.01, 100]")?;
         if !(0.0..=1.0).contains(&self.first_collision) {
             return Err(setting("--first-collision", format!("{} must lie in [0, 1]", self.first_collision)));
         }

@@ -19,7 +19,7 @@
 
 use super::directions::LightFrame;
 use engine::Medium;
-use engine::field::optical_depth_sweep;
+use engine::field::{lattice_over, optical_depth_sweep};
 use glam::{UVec3, Vec3};
 use rayon::prelude::*;
 
@@ -42,10 +42,8 @@ impl DepthField {
     /// Builds the field of `medium` for the world directions `dirs`, with at most
     /// `max_nodes` nodes per axis (at most one per grid voxel).
     pub fn build(medium: &Medium, dirs: &[Vec3], max_nodes: u32) -> DepthField {
-        let grid = medium.grid();
-        let support = grid.support_bounds();
-        let n = (grid.dims() + UVec3::ONE).min(UVec3::splat(max_nodes.max(2)));
-        let spacing = support.extent() / (n - UVec3::ONE).as_vec3();
+        let support = medium.grid().support_bounds();
+        let (n, spacing) = lattice_over(medium, max_nodes);
         let nodes = (n.x * n.y * n.z) as usize;
         let per_dir: Vec<Vec<f32>> =
             dirs.par_iter().map(|&d| optical_depth_sweep(medium, support, n, spacing, d.normalize())).collect();

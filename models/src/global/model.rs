@@ -204,6 +204,28 @@ pub enum ModelError {
     Layout { path: PathBuf, why: String },
 }
 
+/// The bytes of a model's weights (`path`, .safetensors) and the text of its sidecar
+/// (same name, .json), each error naming its file.
+pub fn read_model_files(path: &Path) -> Result<(Vec<u8>, String), ModelError> {
+    let json_path = path.with_extension("json");
+    let text =
+        std::fs::read_to_string(&json_path).map_err(|e| ModelError::File { path: json_path, why: e.to_string() })?;
+    let bytes = std::fs::read(path).map_err(|e| ModelError::File { path: path.to_owned(), why: e.to_string() })?;
+    Ok((bytes, text))
+}
+
+/// A shipped model, loaded (and checked) once into `cell` by `load`; its error names
+/// `path`.
+pub fn shipped_once<T>(
+    cell: &'static OnceLock<Result<Arc<T>, String>>,
+    path: &str,
+    load: impl FnOnce() -> Result<T, ModelError>,
+) -> Result<Arc<T>, ModelError> {
+    cell.get_or_init(|| load().map(Arc::new).map_err(|e| e.to_string()))
+        .clone()
+        .map_err(|why| ModelError::File { path: path.into(), why })
+}
+
 /// A trained global model: layout, standardization and network.
 #[derive(Clone, Debug)]
 pub struct GlobalModel {
@@ -231,10 +253,7 @@ impl GlobalModel {
     /// sidecar's feature layout is what this code computes and that the weights have
     /// the shapes the sidecar's architecture says, all finite.
     pub fn load(path: &Path) -> Result<GlobalModel, ModelError> {
-        let json_path = path.with_extension("json");
-        let text = std::fs::read_to_string(&json_path)
-            .map_err(|e| ModelError::File { path: json_path.clone(), why: e.to_string() })?;
-        let bytes = std::fs::read(path).map_err(|e| ModelError::File { path: path.to_owned(), why: e.to_string() })?;
+        let (bytes, text) = read_model_files(path)?;
         Self::from_bytes(&bytes, &text, path)
     }
 
@@ -242,14 +261,9 @@ impl GlobalModel {
     /// fresh build predicts without any file. Loaded (and checked) once.
     pub fn shipped() -> Result<Arc<GlobalModel>, ModelError> {
         static SHIPPED: OnceLock<Result<Arc<GlobalModel>, String>> = OnceLock::new();
-        SHIPPED
-            .get_or_init(|| {
-                Self::from_bytes(SHIPPED_WEIGHTS, SHIPPED_SIDECAR, Path::new(SHIPPED_PATH))
-                    .map(Arc::new)
-                    .map_err(|e| e.to_string())
-            })
-            .clone()
-            .map_err(|why| ModelError::File { path: SHIPPED_PATH.into(), why })
+        shipped_once(&SHIPPED, SHIPPED_PATH, || {
+            Self::from_bytes(SHIPPED_WEIGHTS, SHIPPED_SIDECAR, Path::new(SHIPPED_PATH))
+        })
     }
 
     /// A model from the bytes of its weights and the text of its sidecar; `path` (the
@@ -285,32 +299,10 @@ impl GlobalModel {
                 ),
             });
         }
-        let tensors = candle_core::safetensors::load_buffer(bytes, &candle_core::Device::Cpu)
-            .map_err(|e| file_err(path, format!("not a readable safetensors file: {e}")))?;
         let mut widths = vec![n_f];
         widths.extend(&sidecar.hidden);
         widths.push(1);
-        let mut layers = vec![];
-        for l in 0..widths.len() - 1 {
-            let (i, o) = (widths[l], widths[l + 1]);
-            let get = |name: String, shape: &[usize]| -> Result<Vec<f32>, ModelError> {
-                let t = tensors.get(&name).ok_or_else(|| file_err(path, format!("tensor {name} is missing")))?;
-                if t.dims() != shape {
-                    return Err(file_err(path, format!("tensor {name} has shape {:?}, expected {shape:?}", t.dims())));
-                }
-                let v: Vec<f32> = t
-                    .to_dtype(candle_core::DType::F32)
-                    .and_then(|t| t.flatten_all())
-                    .and_then(|t| t.to_vec1())
-                    .map_err(|e| file_err(path, format!("tensor {name}: {e}")))?;
-                if let Some(k) = v.iter().position(|x| !x.is_finite()) {
-                    return Err(file_err(path, format!("tensor {name} holds a non-finite value at {k}")));
-                }
-                Ok(v)
-            };
-            layers.push((i, o, get(format!("layers.{l}.weight"), &[o, i])?, get(format!("layers.{l}.bias"), &[o])?));
-        }
-        let mlp = Mlp::new(&layers, sidecar.activation);
+        let mlp = Mlp::from_safetensors(bytes, &widths, sidecar.activation).map_err(|why| file_err(path, why))?;
         Ok(GlobalModel::new(sidecar, mlp))
     }
 

@@ -64,6 +64,35 @@ impl Mlp {
         Mlp { layers, activation, width }
     }
 
+    /// The MLP of a safetensors file with layers `layers.L.weight` ([out, in]) and
+    /// `layers.L.bias` for the layer widths `widths` (inputs first, 1 output last);
+    /// refuses missing tensors, other shapes and non-finite values, saying which.
+    pub fn from_safetensors(bytes: &[u8], widths: &[usize], activation: Activation) -> Result<Self, String> {
+        let tensors = candle_core::safetensors::load_buffer(bytes, &candle_core::Device::Cpu)
+            .map_err(|e| format!("not a readable safetensors file: {e}"))?;
+        let mut layers = vec![];
+        for l in 0..widths.len() - 1 {
+            let (i, o) = (widths[l], widths[l + 1]);
+            let get = |name: String, shape: &[usize]| -> Result<Vec<f32>, String> {
+                let t = tensors.get(&name).ok_or_else(|| format!("tensor {name} is missing"))?;
+                if t.dims() != shape {
+                    return Err(format!("tensor {name} has shape {:?}, expected {shape:?}", t.dims()));
+                }
+                let v: Vec<f32> = t
+                    .to_dtype(candle_core::DType::F32)
+                    .and_then(|t| t.flatten_all())
+                    .and_then(|t| t.to_vec1())
+                    .map_err(|e| format!("tensor {name}: {e}"))?;
+                if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+                    return Err(format!("tensor {name} holds a non-finite value at {k}"));
+                }
+                Ok(v)
+            };
+            layers.push((i, o, get(format!("layers.{l}.weight"), &[o, i])?, get(format!("layers.{l}.bias"), &[o])?));
+        }
+        Ok(Mlp::new(&layers, activation))
+    }
+
     pub fn n_inputs(&self) -> usize {
         self.layers[0].inputs
     }

@@ -1,9 +1,10 @@
 //! What both models' networks share: dense layers evaluated without allocation
 //! (portable and AVX2 + FMA kernels), the MLP evaluator, the optimizers and the
-//! training schedule check, and a vectorized ln(1 + x).
+//! training schedule check, the shared training loop, and a vectorized ln(1 + x).
 
 pub mod dense;
 pub mod fastmath;
+pub mod fit;
 pub mod mlp;
 pub mod optim;
 

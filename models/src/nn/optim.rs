@@ -11,7 +11,8 @@ use std::path::Path;
 /// every other output. The file is serialized in memory: candle's own writer goes
 /// through a temporary file of mode 0600 that it leaves behind when killed.
 pub fn save_safetensors(tensors: &HashMap<String, Tensor>, path: &Path) -> std::io::Result<()> {
-    let bytes = safetensors::serialize(tensors.iter(), None).map_err(std::io::Error::other)?;
+    let bytes = safetensors::serialize(tensors.iter(), None)
+        .map_err(|e| std::io::Error::other(format!("cannot write {}: {e}", path.display())))?;
     crate::dataset::npy::write_bytes_atomically(path, &bytes)
 }
 

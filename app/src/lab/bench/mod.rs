@@ -26,6 +26,9 @@ pub enum BenchCommand {
     DatagenP2p(datagen::BenchDatagenP2pArgs),
     /// Nanoseconds per prediction of the global model, network alone and with features.
     Predict(predict::BenchPredictArgs),
+    /// Microseconds per prediction of the cloud-aware model (stencil features and
+    /// network, one thread) and the seconds of its per-cloud, per-sun fields.
+    PredictCloud(predict::BenchPredictCloudArgs),
     /// The window's responsiveness without a window: milliseconds from a parameter
     /// change to the first image the render worker publishes.
     #[cfg(feature = "gui")]
@@ -46,6 +49,7 @@ pub fn run(which: BenchCommand) -> Result<()> {
         BenchCommand::DatagenP2p(args) => datagen::bench_datagen_p2p(args),
         BenchCommand::Predict(args) => predict::bench_predict(args),
         BenchCommand::PredictP2p(args) => predict::bench_predict_p2p(args),
+        BenchCommand::PredictCloud(args) => predict::bench_predict_cloud(args),
         #[cfg(feature = "gui")]
         BenchCommand::Latency(args) => window::bench_latency(args),
         #[cfg(feature = "gui")]

@@ -1,4 +1,4 @@
-//! `nimbus bench predict` and `nimbus bench predict-p2p`: the cost of one prediction
+//! `nimbus bench predict`, `predict-cloud` and `predict-p2p`: the cost of one prediction
 //! of each model on one thread (features, network), beside the cost of a path-traced
 //! scattering event in the same cloud.
 
@@ -267,6 +267,105 @@ pub fn bench_predict_p2p(args: BenchPredictP2pArgs) -> Result<()> {
             std::hint::black_box(sink + out[0]);
             println!("| {name} | {} | {single:.1} | {batched:.1} | {:.1} |", net.parameters(), features_us + batched);
         }
+        Ok(())
+    })
+}
+
+#[derive(Args, Debug)]
+pub struct BenchPredictCloudArgs {
+    /// Model to time (default: the shipped cloud-aware model).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Predictions per measurement.
+    #[arg(long, default_value_t = 100_000)]
+    pub n: usize,
+    /// Grid resolution of the benchmark cloud (scene-a).
+    #[arg(long, default_value_t = 128)]
+    pub resolution: u32,
+    #[arg(long, default_value_t = 40.0)]
+    pub rho: f32,
+}
+
+/// The cloud-aware model's cost: the fields built per cloud and sun (2 threads, as on
+/// the target machine, and 1), then features and network per prediction on one
+/// thread at camera-path vertices of scene-a, beside a path-traced scattering event.
+pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
+    use models::cloud::{BoundCloudModel, CloudModel};
+    if args.n == 0 {
+        bail!("--n must be at least 1");
+    }
+    let model = Arc::new(match &args.model {
+        Some(p) => CloudModel::load(p)?,
+        None => (*CloudModel::shipped()?).clone(),
+    });
+    let params = modeler::preset("scene-a").context("scene-a preset")?;
+    let grid = Arc::new(modeler::build_grid(&params, args.resolution)?);
+    let medium = engine::Medium::new(grid, args.rho, 1.0, engine::PhaseFunction::HenyeyGreenstein { g: 0.85 })?;
+    let sun = engine::Sun::new(glam::Vec3::new(0.3, -1.0, 0.2), glam::Vec3::ONE, 0.0)?;
+    let nodes = 2 * models::global::depth_field::DEFAULT_MAX_NODES;
+    let build = |threads: usize| -> Result<(BoundCloudModel, f64)> {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
+        let t = std::time::Instant::now();
+        let b = pool.install(|| BoundCloudModel::new(model.clone(), &medium, &sun, nodes));
+        Ok((b, t.elapsed().as_secs_f64()))
+    };
+    let (_, secs2) = build(2)?;
+    let (bound, secs1) = build(1)?;
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    pool.install(|| {
+        let mut rng = Rng::new(7, 0, 0);
+        let queries: Vec<_> =
+            (0..4096).map(|_| models::cloud::datagen::camera_path_query(&medium, 1, None, &mut rng)).collect();
+        let mut sink = 0.0f32;
+        let t = std::time::Instant::now();
+        for i in 0..args.n {
+            let (p, w) = queries[i % queries.len()];
+            sink += bound.predict(&medium, &sun, p, w);
+        }
+        let total_us = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
+        let mut feat = vec![0.0; models::cloud::features::N_FEATURES];
+        let t = std::time::Instant::now();
+        for i in 0..args.n {
+            let (p, w) = queries[i % queries.len()];
+            bound.field().features(1.0, 0.85, p, w, &mut feat);
+            sink += feat[3];
+        }
+        let features_us = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
+        let t = std::time::Instant::now();
+        let phase = medium.phase();
+        let m = args.n.max(1000);
+        for i in 0..m {
+            let (p, w) = queries[i % queries.len()];
+            let wi = phase.sample(w, rng.uniform2()).wi;
+            if let engine::medium::FreeFlight::Collision { t } =
+                medium.sample_free_flight(p, wi, medium.exit_distance(p, wi), &mut rng)
+            {
+                sink += t;
+            }
+            let to_sun = -sun.direction();
+            sink += medium.transmittance_ratio(p, to_sun, medium.exit_distance(p, to_sun), &mut rng);
+        }
+        let event_us = t.elapsed().as_secs_f64() * 1e6 / m as f64;
+        std::hint::black_box(sink);
+        println!(
+            "# nimbus bench predict-cloud: scene-a {}^3, rho {}, {} features, hidden {:?}",
+            args.resolution,
+            args.rho,
+            models::cloud::features::N_FEATURES,
+            model.sidecar.hidden
+        );
+        println!("| measurement | value | goal |");
+        println!("|---|---|---|");
+        println!("| fields per cloud and sun, 2 threads | {secs2:.3} s | <= 1 s |");
+        println!("| fields per cloud and sun, 1 thread | {secs1:.3} s | |");
+        println!("| field memory | {:.1} MiB | |", bound.field().memory_bytes() as f64 / 1048576.0);
+        println!(
+            "| features + network per prediction, 1 thread | {total_us:.2} us = {:.1} path-traced scattering events | <= 20 us |",
+            total_us / event_us
+        );
+        println!("| features alone | {features_us:.2} us | |");
+        println!("| network alone | {:.2} us | |", total_us - features_us);
+        println!("| path-traced scattering event (free flight + NEE) | {event_us:.3} us | |");
         Ok(())
     })
 }

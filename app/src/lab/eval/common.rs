@@ -49,16 +49,20 @@ pub(crate) fn render_tracked(
             let film = r.film_handle();
             let img = film.read().unwrap_or_else(|e| e.into_inner()).mean(Buffer::Full);
             let rmse = relative_rmse(&img, reference, mask);
-            if done >= next_point || done == spp {
-                curve.push((seconds, rmse));
+            let on_curve = done >= next_point || done == spp;
+            if on_curve {
                 next_point = (next_point as f64 * 1.3).ceil() as u32;
             }
-            if preview_secs.is_none() && rmse <= PREVIEW_RMSE {
+            let reached = preview_secs.is_none() && rmse <= PREVIEW_RMSE;
+            if reached {
                 preview_secs = Some(seconds);
-                if stop_at_preview {
-                    curve.push((seconds, rmse));
-                    break;
-                }
+            }
+            // A run that stops at the preview ends its curve there.
+            if on_curve || (reached && stop_at_preview) {
+                curve.push((seconds, rmse));
+            }
+            if reached && stop_at_preview {
+                break;
             }
         }
     }

@@ -25,14 +25,14 @@ use super::common::{Csv, TileSheet, image_npy, opt_cell, read_image_npy, read_js
 use super::preview::PreviewJob;
 use crate::cli::common::{RunArgs, init_threads, progress_bar, stop_on_ctrl_c};
 use crate::metrics::{
-    Image, avg3, bias, false_colour, lit_mean, nonempty, projected_preview, reference_noise, relative_rmse_less, ttuv,
+    Image, bias, error_colours, lit_mean, nonempty, projected_preview, reference_noise, relative_rmse_less, ttuv,
 };
 use crate::output::{ToneMap, write_bytes_atomically};
 use crate::scene::SceneFile;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use engine::{Buffer, DensityGrid, Integrator, RenderControl};
-use models::global::BoundGlobalModel;
+use models::prediction::{PredictionModel, PredictorKind};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -74,9 +74,13 @@ pub struct EvalArgs {
     /// Depth-field nodes per axis of the model's features.
     #[arg(long, default_value_t = models::global::depth_field::DEFAULT_MAX_NODES)]
     pub field_nodes: u32,
-    /// The global model (default: the shipped one).
+    /// A model of prediction at bounce k, cloud-aware or global (default: the shipped
+    /// one of --predictor).
     #[arg(long)]
     pub model: Option<PathBuf>,
+    /// The shipped model used without --model: global (the default) or cloud.
+    #[arg(long, default_value = "global")]
+    pub predictor: String,
     /// Also measure path tracing's time to preview (a second path-traced run per
     /// configuration, another seed, until 5 % relative RMSE against the reference, its
     /// own noise subtracted, or --preview-spp samples), and report every prediction's
@@ -138,10 +142,8 @@ struct ReferenceMeta {
     seconds: f64,
     ttuv: f64,
     preview_secs: Option<f64>,
-    /// Whether the path-traced preview run was made (it may not have reached 5 %).
-    #[serde(default)]
-    preview_tried: bool,
-    /// That run's (seconds, relative RMSE) curve.
+    /// The path-traced preview run's (seconds, relative RMSE) curve; empty until
+    /// that run is made (it may not have reached 5 %).
     #[serde(default)]
     preview_curve: Vec<(f64, f64)>,
 }
@@ -152,8 +154,13 @@ struct ReferenceMeta {
 fn model_id(args: &EvalArgs) -> Result<String> {
     Ok(match &args.model {
         Some(path) => format!("{:016x}", models::fingerprint::model_file_fingerprint(path)?),
-        None => format!("{:016x}", models::global::model::shipped_fingerprint()),
+        None => format!("{:016x}", models::prediction::shipped_fingerprint(predictor_kind(args)?)),
     })
+}
+
+fn predictor_kind(args: &EvalArgs) -> Result<PredictorKind> {
+    PredictorKind::parse(&args.predictor)
+        .with_context(|| format!("--predictor {:?}: choose {}", args.predictor, PredictorKind::NAMES))
 }
 
 /// The cache name of one prediction cell: everything its numbers depend on.
@@ -195,10 +202,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
     if args.spp < 2 || args.spp_ref < 2 || args.size == 0 {
         bail!("--spp and --spp-ref must be at least 2 (variances need two samples), --size at least 1");
     }
-    let model = match &args.model {
-        Some(p) => Arc::new(models::global::GlobalModel::load(p)?),
-        None => models::global::GlobalModel::shipped()?,
-    };
+    let model = PredictionModel::load_or_shipped(args.model.as_deref(), predictor_kind(args)?)?;
     let model_id = model_id(args).context("--model")?;
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
@@ -223,7 +227,10 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             args.spp_ref,
             args.spp,
             args.p,
-            args.model.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "shipped".into())
+            args.model
+                .as_ref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_else(|| format!("shipped {}", args.predictor))
         );
     }
     let renders_per_group = args.spp_ref as u64 + args.spp as u64 * args.k.len() as u64;
@@ -273,7 +280,6 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                     seconds: t.seconds,
                     ttuv: ttuv(&img.var, &mask, t.seconds),
                     preview_secs: None,
-                    preview_tried: false,
                     preview_curve: vec![],
                 };
                 write_bytes_atomically(
@@ -287,7 +293,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         let mask = nonempty(&reference.mean);
         let ref_mean = lit_mean(&reference.mean);
         let ref_noise = reference_noise(&reference, &mask);
-        if args.preview && !meta.preview_tried {
+        if args.preview && meta.preview_curve.is_empty() {
             // The reference's own noise is subtracted (`relative_rmse`), so path tracing
             // may need more samples than the reference has.
             let t = render_tracked(
@@ -299,11 +305,22 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 true,
                 |_| {},
             )?;
-            (meta.preview_secs, meta.preview_tried, meta.preview_curve) = (t.preview_secs, true, t.curve);
+            (meta.preview_secs, meta.preview_curve) = (t.preview_secs, t.curve);
             write_json(&ref_json, &meta)?;
         }
-        // The model bound to this cloud and sun, built once for every k.
-        let mut bound: Option<(Arc<BoundGlobalModel>, f64)> = None;
+        // The model bound to this cloud and sun, built once for every k and the
+        // preview, with the seconds it took.
+        let bound = std::cell::OnceCell::new();
+        let bind = || -> super::preview::Bound {
+            bound
+                .get_or_init(|| {
+                    let t = Instant::now();
+                    let sun = scene.sun.as_ref().expect("evaluation scenes have a sun");
+                    let b = model.bind(&scene.medium, sun, args.field_nodes);
+                    (b, t.elapsed().as_secs_f64())
+                })
+                .clone()
+        };
         let mut group_cells = vec![];
         for (ki, &k) in args.k.iter().enumerate() {
             let kbase = base + args.spp_ref as u64 + ki as u64 * args.spp as u64;
@@ -315,17 +332,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 group_cells.push(cell);
                 continue;
             }
-            let (pred, secs_field) = match &bound {
-                Some(b) => b.clone(),
-                None => {
-                    let t = Instant::now();
-                    let sun = scene.sun.as_ref().expect("evaluation scenes have a sun");
-                    let b = Arc::new(BoundGlobalModel::new(model.clone(), &scene.medium, sun, args.field_nodes));
-                    let built = (b, t.elapsed().as_secs_f64());
-                    bound = Some(built.clone());
-                    built
-                }
-            };
+            let (pred, secs_field) = bind();
             let mut f = file.clone();
             f.seed = 100 + k as u64;
             f.k = k;
@@ -393,8 +400,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 scene: &scene,
                 reference: &reference,
                 mask: &mask,
-                model: &model,
-                field_nodes: args.field_nodes,
+                bound: &bind,
                 spp: args.preview_passes.max(2),
                 control: &control,
                 cache: &cache,
@@ -403,7 +409,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             };
             let cells = job.run()?;
             super::preview::write_group(&args.out, &key, &job, &cells, &meta.preview_curve, &group_cells)?;
-            previews.extend(cells);
+            previews.extend(cells.into_iter().map(|(c, _)| c));
         }
         results.extend(group_cells);
     }
@@ -432,12 +438,8 @@ fn write_sheet(path: &Path, reference: &Image, cache: &Path, key: &str, args: &E
             reference.mean.iter().zip(low).map(|(r, l)| std::array::from_fn(|c| (r[c] - l[c]).max(0.0))).collect();
         // The error's colour scale, as in the window: yellow at the mean reference high.
         let scale = lit_mean(&ref_high).max(1e-12);
-        let toned = |img: &Vec<[f32; 3]>| img.iter().map(|p| p.map(|v| tone.apply(v, 0.0))).collect::<Vec<[u8; 3]>>();
-        let error: Vec<[u8; 3]> = high
-            .iter()
-            .zip(&ref_high)
-            .map(|(a, b)| false_colour((avg3(&std::array::from_fn(|c| (a[c] - b[c]).abs())) / scale) as f32))
-            .collect();
+        let toned = |img: &[[f32; 3]]| tone.to_rgb8(img, 0.0);
+        let error = error_colours(high, &ref_high, scale);
         let tiles = [toned(&reference.mean), toned(full), toned(low), toned(&ref_high), toned(high), error];
         for (col, tile) in tiles.iter().enumerate() {
             sheet.put(col as u32, row as u32, tile);

@@ -22,7 +22,7 @@
 
 use super::common::{Csv, TileSheet, image_npy, read_image_npy, read_json, render_tracked, write_json};
 use crate::cli::common::{BdptPredictionArgs, RunArgs, init_threads, progress_bar, stop_on_ctrl_c};
-use crate::metrics::{Image, bias, false_colour, lit_mean, nonempty, ttuv};
+use crate::metrics::{Image, bias, error_colours, lit_mean, nonempty, ttuv};
 use crate::output::{ToneMap, write_bytes_atomically};
 use crate::scene::{PredictorCache, SceneFile};
 use anyhow::{Context, Result, bail};
@@ -464,19 +464,10 @@ fn write_sheet(path: &Path, size: u32, rows: &[(Vec<[f32; 3]>, Vec<Vec<[f32; 3]>
     for (r, (reference, preds)) in rows.iter().enumerate() {
         let scale = lit_mean(reference).max(1e-12);
         let exposure = (0.18 / scale as f32).log2();
-        let toned = |img: &[[f32; 3]]| img.iter().map(|p| p.map(|v| tone.apply(v, exposure))).collect::<Vec<[u8; 3]>>();
-        let mut tiles = vec![toned(reference)];
+        let mut tiles = vec![tone.to_rgb8(reference, exposure)];
         for pred in preds {
-            tiles.push(toned(pred));
-            tiles.push(
-                pred.iter()
-                    .zip(reference)
-                    .map(|(a, b)| {
-                        let e = (0..3).map(|c| (a[c] - b[c]).abs()).sum::<f32>() / 3.0;
-                        false_colour(e / scale as f32)
-                    })
-                    .collect(),
-            );
+            tiles.push(tone.to_rgb8(pred, exposure));
+            tiles.push(error_colours(pred, reference, scale));
         }
         for (c, tile) in tiles.iter().enumerate() {
             sheet.put(c as u32, r as u32, tile);

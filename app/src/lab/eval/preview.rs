@@ -11,14 +11,13 @@
 //! down to it.
 
 use super::common::{image_npy, read_image_npy, read_json, render_tracked, write_json};
-use crate::metrics::{Image, relative_rmse_less};
+use crate::metrics::{Image, avg3, downscale, relative_rmse_less};
 use crate::output::write_bytes_atomically;
 use crate::scene::SceneFile;
-use anyhow::Result;
+use anyhow::{Result, bail};
 use engine::field::SunTransmittance;
 use engine::integrator::preview::{MultipleScattering, Preview};
-use engine::{Buffer, Integrator, RenderControl, Renderer, Scene};
-use models::global::{BoundGlobalModel, GlobalModel};
+use engine::{Buffer, InScatterPredictor, Integrator, PassOutcome, RenderControl, Renderer, Scene};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::sync::Arc;
@@ -48,15 +47,21 @@ pub struct PreviewCell {
     pub curve: Vec<(f64, f64)>,
 }
 
+/// The bound model of prediction at bounce k and the seconds it took to build (once per configuration,
+/// shared with the prediction cells).
+pub type Bound = (Arc<dyn InScatterPredictor>, f64);
+
+/// The preview techniques, in the order of the tables and the sheet.
+const TECHNIQUES: [&str; 3] = ["learned", "octaves", "octaves fitted"];
+
 /// What the preview cells of one configuration share.
 pub struct PreviewJob<'a> {
     pub file: &'a SceneFile,
     pub scene: &'a Arc<Scene>,
     pub reference: &'a Image,
     pub mask: &'a [bool],
-    pub model: &'a Arc<GlobalModel>,
-    /// Depth-field nodes of the bound model.
-    pub field_nodes: u32,
+    /// The model bound to this cloud and sun (built on first use).
+    pub bound: &'a dyn Fn() -> Bound,
     /// Passes of each preview render.
     pub spp: u32,
     pub control: &'a RenderControl,
@@ -66,33 +71,40 @@ pub struct PreviewJob<'a> {
     pub labels: (&'a str, &'a str, f32),
 }
 
+/// The octave approximation's defaults as (N, a, b, c).
+fn default_octaves() -> [f32; 4] {
+    match MultipleScattering::DEFAULT_OCTAVES {
+        MultipleScattering::Octaves { octaves, a, b, c } => [octaves as f32, a, b, c],
+        _ => unreachable!("the default octaves are octaves"),
+    }
+}
+
 impl PreviewJob<'_> {
-    /// The three preview cells (from the cache when there).
-    pub fn run(&self) -> Result<Vec<PreviewCell>> {
+    /// The three preview cells and their images (from the cache when there; the
+    /// fields are built only when something must be rendered).
+    pub fn run(&self) -> Result<Vec<(PreviewCell, Vec<[f32; 3]>)>> {
+        let cached: Option<Vec<_>> = TECHNIQUES.iter().map(|t| self.cached(t)).collect();
+        if let Some(cells) = cached {
+            return Ok(cells);
+        }
         let sun = self.scene.sun.as_ref().expect("evaluation scenes have a sun");
         let t = Instant::now();
         let field = Arc::new(SunTransmittance::build(&self.scene.medium, sun, SunTransmittance::DEFAULT_MAX_NODES));
         let field_secs = t.elapsed().as_secs_f64();
-        let mut cells = vec![];
         // The learned preview: the model bound to the cloud and sun, its lattice for
         // this camera.
-        let learned = |_: &()| -> Result<(MultipleScattering, f64)> {
+        let learned = || -> Result<(MultipleScattering, f64)> {
+            let (bound, bound_secs) = (self.bound)();
             let t = Instant::now();
-            let bound = BoundGlobalModel::new(self.model.clone(), &self.scene.medium, sun, self.field_nodes);
             let lattice = Preview::learned_lattice(
                 self.scene,
                 &field,
-                &bound,
+                bound.as_ref(),
                 self.scene.camera.position(),
                 self.file.render.preview_nodes,
             );
-            Ok((MultipleScattering::Lattice(Arc::new(lattice)), t.elapsed().as_secs_f64()))
+            Ok((MultipleScattering::Lattice(Arc::new(lattice)), bound_secs + t.elapsed().as_secs_f64()))
         };
-        cells.push(self.cell("learned", None, field_secs, &field, &learned)?);
-        let defaults = [3.0, 0.5, 0.5, 0.5];
-        cells.push(self.cell("octaves", Some(defaults), field_secs, &field, &|_: &()| {
-            Ok((MultipleScattering::DEFAULT_OCTAVES, 0.0))
-        })?);
         let fitted_key = self.cache.join(format!("{}_octaves_fit.json", self.key));
         let fitted = match read_json::<[f32; 4]>(&fitted_key) {
             Some(p) => p,
@@ -102,9 +114,28 @@ impl PreviewJob<'_> {
                 p
             }
         };
-        cells
-            .push(self.cell("octaves fitted", Some(fitted), field_secs, &field, &|_: &()| Ok((octaves(fitted), 0.0)))?);
-        Ok(cells)
+        Ok(vec![
+            self.cell(TECHNIQUES[0], None, field_secs, &field, learned)?,
+            self.cell(TECHNIQUES[1], Some(default_octaves()), field_secs, &field, || {
+                Ok((MultipleScattering::DEFAULT_OCTAVES, 0.0))
+            })?,
+            self.cell(TECHNIQUES[2], Some(fitted), field_secs, &field, || Ok((octaves(fitted), 0.0)))?,
+        ])
+    }
+
+    /// The cache files of `technique`'s cell: (json, npy).
+    fn cache_paths(&self, technique: &str) -> (std::path::PathBuf, std::path::PathBuf) {
+        let tag = format!("{}_preview_{}_spp{}", self.key, technique.replace(' ', "_"), self.spp);
+        (self.cache.join(format!("{tag}.json")), self.cache.join(format!("{tag}.npy")))
+    }
+
+    /// `technique`'s cell and image from the cache, if both are there and readable.
+    fn cached(&self, technique: &str) -> Option<(PreviewCell, Vec<[f32; 3]>)> {
+        let (json, npy) = self.cache_paths(technique);
+        let cell = read_json::<PreviewCell>(&json)?;
+        let (w, h) = (self.reference.w, self.reference.h);
+        let image = read_image_npy(&npy, w, h, 1).ok()?.into_iter().next()?;
+        Some((cell, image))
     }
 
     /// One technique's cell: rendered (or read from the cache) and measured.
@@ -114,21 +145,16 @@ impl PreviewJob<'_> {
         params: Option<[f32; 4]>,
         field_secs: f64,
         field: &Arc<SunTransmittance>,
-        multiple: &dyn Fn(&()) -> Result<(MultipleScattering, f64)>,
-    ) -> Result<PreviewCell> {
-        let tag = format!("{}_preview_{}_spp{}", self.key, technique.replace(' ', "_"), self.spp);
-        let (json, npy) = (self.cache.join(format!("{tag}.json")), self.cache.join(format!("{tag}.npy")));
-        if let (Some(cell), true) = (read_json::<PreviewCell>(&json), npy.exists()) {
-            return Ok(cell);
+        multiple: impl FnOnce() -> Result<(MultipleScattering, f64)>,
+    ) -> Result<(PreviewCell, Vec<[f32; 3]>)> {
+        if let Some(cached) = self.cached(technique) {
+            return Ok(cached);
         }
-        let (ms, ms_secs) = multiple(&())?;
+        let (ms, ms_secs) = multiple()?;
         let setup_secs = field_secs + ms_secs;
-        let preview =
-            Preview::new(field.clone(), ms, Preview::default_step(&self.scene.medium)).map_err(anyhow::Error::msg)?;
-        let integrator = Integrator::preview(self.file.settings(), Arc::new(preview))?;
         let t = render_tracked(
             self.scene.clone(),
-            integrator,
+            self.integrator(field, ms)?,
             self.spp,
             self.control,
             Some((self.reference, self.mask)),
@@ -151,21 +177,24 @@ impl PreviewJob<'_> {
             spp: self.spp,
             curve: t.curve.iter().map(|&(s, r)| (s + setup_secs, r)).collect(),
         };
+        let (json, npy) = self.cache_paths(technique);
         let (w, h) = (self.reference.w, self.reference.h);
-        write_bytes_atomically(&npy, &image_npy(&[full.mean], w, h))?;
+        write_bytes_atomically(&npy, &image_npy(std::slice::from_ref(&full.mean), w, h))?;
         write_json(&json, &cell)?;
-        Ok(cell)
+        Ok((cell, full.mean))
     }
 
-    /// The preview image of `technique` from the cache (after [`PreviewJob::run`]).
-    pub fn image(&self, technique: &str) -> Option<Vec<[f32; 3]>> {
-        let tag = format!("{}_preview_{}_spp{}", self.key, technique.replace(' ', "_"), self.spp);
-        let (w, h) = (self.reference.w, self.reference.h);
-        read_image_npy(&self.cache.join(format!("{tag}.npy")), w, h, 1).ok().and_then(|l| l.into_iter().next())
+    /// The preview integrator for the field and a source of the higher orders.
+    fn integrator(&self, field: &Arc<SunTransmittance>, multiple: MultipleScattering) -> Result<Integrator> {
+        let preview = Preview::new(field.clone(), multiple, Preview::default_step(&self.scene.medium))
+            .map_err(anyhow::Error::msg)?;
+        Ok(Integrator::preview(self.file.settings(), Arc::new(preview))?)
     }
 
-    /// (N = 3, a, b, c) minimizing the squared error against the reference over the
-    /// lit pixels, at a quarter of the resolution (Nelder-Mead from the defaults).
+    /// (N, a, b, c) with N the default's, minimizing the squared error against the
+    /// reference over the lit pixels, at a quarter of the resolution (Nelder-Mead
+    /// from the defaults). An error if the run is stopped, so that no fit of empty
+    /// images is cached.
     fn fit_octaves(&self, field: &Arc<SunTransmittance>) -> Result<[f32; 4]> {
         let f = 4u32.min(self.reference.w).max(1);
         let (w, h) = (self.reference.w.div_ceil(f), self.reference.h.div_ceil(f));
@@ -174,36 +203,28 @@ impl PreviewJob<'_> {
             camera: engine::Camera::new(cam.position(), cam.target(), cam.up(), cam.fov_y_deg(), w, h)?,
             ..(**self.scene).clone()
         });
-        // The reference boxed down to the small image (lit pixels only).
-        let mut target = vec![(0.0f64, 0u32); (w * h) as usize];
-        for y in 0..self.reference.h {
-            for x in 0..self.reference.w {
-                let i = (y * self.reference.w + x) as usize;
-                let t = &mut target[((y / f) * w + x / f) as usize];
-                t.0 += (self.reference.mean[i].iter().map(|v| *v as f64).sum::<f64>()) / 3.0;
-                t.1 += 1;
-            }
-        }
-        let target: Vec<f64> = target.iter().map(|(s, n)| s / (*n).max(1) as f64).collect();
-        let step = Preview::default_step(&self.scene.medium);
+        // The reference boxed down to the small image.
+        let target: Vec<f64> = downscale(self.reference, f).0.iter().map(|p| p.iter().sum::<f64>() / 3.0).collect();
+        let [n, a0, b0, c0] = default_octaves();
+        let generation = self.control.generation();
         let loss = |p: &[f64; 3]| -> f64 {
             let [a, b, c] = p.map(|v| v.clamp(0.01, 1.0) as f32);
-            let Ok(preview) = Preview::new(field.clone(), octaves([3.0, a, b, c]), step) else { return f64::INFINITY };
-            let Ok(integ) = Integrator::preview(self.file.settings(), Arc::new(preview)) else { return f64::INFINITY };
-            let Ok(mut r) = Renderer::new(small.clone(), integ) else { return f64::INFINITY };
+            let Ok(integrator) = self.integrator(field, octaves([n, a, b, c])) else { return f64::INFINITY };
+            let Ok(mut r) = Renderer::new(small.clone(), integrator) else { return f64::INFINITY };
             for _ in 0..2 {
-                r.render_pass(self.control, self.control.generation());
+                if r.render_pass(self.control, generation) == PassOutcome::Cancelled {
+                    return f64::INFINITY;
+                }
             }
             let img = r.snapshot().mean(Buffer::Full);
-            img.iter()
-                .zip(&target)
-                .filter(|(_, t)| **t > 0.0)
-                .map(|(p, t)| ((p.iter().map(|v| *v as f64).sum::<f64>()) / 3.0 - t).powi(2))
-                .sum()
+            img.iter().zip(&target).filter(|(_, t)| **t > 0.0).map(|(p, t)| (avg3(p) - t).powi(2)).sum()
         };
-        let best = nelder_mead(&loss, [0.5, 0.5, 0.5], 0.2, 60);
+        let best = nelder_mead(&loss, [a0, b0, c0].map(f64::from), 0.2, 60);
+        if self.control.should_abort(generation) {
+            bail!("stopped; finished renders are cached and a rerun resumes from them");
+        }
         let [a, b, c] = best.map(|v| v.clamp(0.01, 1.0) as f32);
-        Ok([3.0, a, b, c])
+        Ok([n, a, b, c])
     }
 }
 
@@ -291,7 +312,7 @@ pub fn write_group(
     out: &Path,
     key: &str,
     job: &PreviewJob,
-    cells: &[PreviewCell],
+    cells: &[(PreviewCell, Vec<[f32; 3]>)],
     path_traced: &[(f64, f64)],
     predictions: &[super::common::CellResult],
 ) -> Result<()> {
@@ -305,7 +326,7 @@ pub fn write_group(
             points: log_seconds(&c.curve),
         });
     }
-    for (i, c) in cells.iter().enumerate() {
+    for (i, (c, _)) in cells.iter().enumerate() {
         series.push(Series { label: c.technique.clone(), colour: PALETTE[4 + i], points: log_seconds(&c.curve) });
     }
     let plot = models::plot::line_plot_png(key, "log10 seconds", "relative RMSE", &series);
@@ -313,25 +334,14 @@ pub fn write_group(
     let reference = job.reference;
     let (w, h) = (reference.w, reference.h);
     let tone = crate::output::ToneMap::Filmic;
-    let toned = |img: &[[f32; 3]]| img.iter().map(|p| p.map(|v| tone.apply(v, 0.0))).collect::<Vec<[u8; 3]>>();
     let mut sheet = super::common::TileSheet::new(w, h, 5, 1);
-    sheet.put(0, 0, &toned(&reference.mean));
-    for (col, technique) in ["learned", "octaves", "octaves fitted"].iter().enumerate() {
-        if let Some(img) = job.image(technique) {
-            sheet.put(col as u32 + 1, 0, &toned(&img));
-            if col == 0 {
-                let scale = crate::metrics::lit_mean(&reference.mean).max(1e-12);
-                let error: Vec<[u8; 3]> = img
-                    .iter()
-                    .zip(&reference.mean)
-                    .map(|(a, b)| {
-                        let d: [f32; 3] = std::array::from_fn(|c| (a[c] - b[c]).abs());
-                        crate::metrics::false_colour((crate::metrics::avg3(&d) / scale) as f32)
-                    })
-                    .collect();
-                sheet.put(4, 0, &error);
-            }
-        }
+    sheet.put(0, 0, &tone.to_rgb8(&reference.mean, 0.0));
+    for (col, (_, img)) in cells.iter().enumerate() {
+        sheet.put(col as u32 + 1, 0, &tone.to_rgb8(img, 0.0));
+    }
+    if let Some((_, learned)) = cells.first() {
+        let scale = crate::metrics::lit_mean(&reference.mean).max(1e-12);
+        sheet.put(4, 0, &crate::metrics::error_colours(learned, &reference.mean, scale));
     }
     sheet.save(&out.join(format!("preview_sheet_{key}.png")))
 }

@@ -1,0 +1,388 @@
+//! The cloud-aware model's input: a light-oriented stencil of the real cloud around
+//! the query point (after Kallweit et al. 2017 and Hu et al. 2023, sized for a CPU).
+//!
+//! The stencil has [`LEVELS`] levels of 3 x 3 x 3 points. Level l has spacing
+//! h_l = h_0 2^l, with h_0 = (largest extent of the medium's box) / 64, so the
+//! coarsest level spans the box. Its points sit at x + h_l (a u + b v + c w) for
+//! a, b, c in {-1, 0, 1}, in the frame whose w points toward the sun and whose u is
+//! the query direction's part across w (so the query direction lies in the u-w
+//! plane, and its angle to the sun is the only angle the network needs).
+//!
+//! Per point, two values (each 3 x 3 plane of them encoded by [`encode_plane`]):
+//! - the density filtered by a Gaussian of standard deviation h_l / 2 (the density
+//!   pyramid of the point-to-point model, 16-bit), as the optical thickness of one
+//!   stencil cell, ln(1 + rho d h_l);
+//! - the optical depth toward the sun there, from the engine's sun-transmittance
+//!   field, as tau_hat = ln(1 / (1 + tau)) (thesis eq. 5.7).
+//!
+//! and seven for the query: ln(1 - albedo + 10^-3) (multiple scattering depends on
+//! the albedo through the absorption per event, steeply near 1), g, cos theta (query
+//! direction against the direction toward the sun), and ln(4 pi p_HG(g^n, mu)) for
+//! n = 1 .. 4 with mu = -cos theta the scattering cosine from the sun's light into the
+//! query direction: light scattered n times through Henyey-Greenstein lobes of mean
+//! cosine g has an angular spread close to a lobe of g^n, so these resolve the
+//! forward peak of strongly anisotropic clouds that cos theta alone leaves to the
+//! network. Everything a cloud and a sun share (the pyramid, the
+//! field) is built once in a [`CloudField`].
+
+use crate::p2p::DensityPyramid;
+use crate::p2p::pyramid::LevelBlend;
+use engine::field::SunTransmittance;
+use engine::{Medium, Sun};
+use glam::Vec3;
+
+/// Stencil levels.
+pub const LEVELS: usize = 6;
+/// Points per level (3 x 3 x 3).
+pub const POINTS: usize = 27;
+/// Features before the stencil: ln(1 - albedo + 10^-3), g, cos theta and the four
+/// phase terms.
+pub const HEAD: usize = 3 + PHASE_TERMS;
+/// Phase terms ln(4 pi p_HG(g^n, mu)), n = 1 ..= PHASE_TERMS.
+pub const PHASE_TERMS: usize = 4;
+/// Length of the feature vector.
+pub const N_FEATURES: usize = HEAD + 2 * LEVELS * POINTS;
+/// h_0 = largest box extent / this.
+pub const BASE_DIVISIONS: f32 = 64.0;
+
+/// Names of the features, in order (stored in the model's sidecar and checked on load).
+pub fn feature_names() -> Vec<String> {
+    let mut names: Vec<String> = ["ln_absorption", "g", "cos_theta"].iter().map(|s| s.to_string()).collect();
+    names.extend((1..=PHASE_TERMS).map(|n| format!("ln_phase_g{n}")));
+    for what in ["density", "tau_sun"] {
+        for l in 0..LEVELS {
+            for c in 0..3 {
+                names.push(format!("{what}_{l}_{c}_centre"));
+                names.push(format!("{what}_{l}_{c}_ring"));
+                names.extend((0..7).map(|k| format!("{what}_{l}_{c}_dev{k}")));
+            }
+        }
+    }
+    names
+}
+
+/// The albedo feature, ln(1 - albedo + 10^-3).
+#[inline]
+pub fn absorption_feature(albedo: f32) -> f32 {
+    (1.0 - albedo + 1e-3).max(1e-3).ln()
+}
+
+/// ln(4 pi p_HG(g, mu)) = ln((1 - g^2) / (1 + g^2 - 2 g mu)^1.5).
+#[inline]
+pub fn ln_phase(g: f32, mu: f32) -> f32 {
+    (1.0 - g * g).ln() - 1.5 * (1.0 + g * g - 2.0 * g * mu).max(1e-12).ln()
+}
+
+/// The stencil offset of point `p` (0 .. 27) in units of h: (a, b, c) in {-1, 0, 1}^3,
+/// a along u, b along v, c toward the sun; point 13 is the centre.
+#[inline]
+pub fn offset(p: usize) -> Vec3 {
+    Vec3::new((p % 3) as f32 - 1.0, ((p / 3) % 3) as f32 - 1.0, (p / 9) as f32 - 1.0)
+}
+
+/// What the features of one cloud under one sun read: the density pyramid and the
+/// sun-transmittance field, with the medium's constants.
+#[derive(Clone, Debug)]
+pub struct CloudField {
+    pyramid: DensityPyramid,
+    sun: SunTransmittance,
+    blends: [LevelBlend; LEVELS],
+    h: [f32; LEVELS],
+    rho: f32,
+    /// Toward the sun.
+    w: Vec3,
+}
+
+impl CloudField {
+    /// Builds the pyramid (up to the coarsest level's width) and the sun field (at
+    /// most `max_nodes` per axis); both in parallel, independent of the thread count.
+    pub fn build(medium: &Medium, sun: &Sun, max_nodes: u32) -> Self {
+        let h0 = medium.bounds().extent().max_element() / BASE_DIVISIONS;
+        let h: [f32; LEVELS] = std::array::from_fn(|l| h0 * (1u32 << l) as f32);
+        let (pyramid, field) = rayon::join(
+            || DensityPyramid::new(medium.grid(), 0.5 * h[LEVELS - 1]).quantized(),
+            || SunTransmittance::build(medium, sun, max_nodes),
+        );
+        let blends = std::array::from_fn(|l| pyramid.select(0.5 * h[l]));
+        CloudField { pyramid, w: field.to_sun(), sun: field, blends, h, rho: medium.rho() }
+    }
+
+    /// Bytes held.
+    pub fn memory_bytes(&self) -> usize {
+        self.pyramid.bytes() + self.sun.memory_bytes()
+    }
+
+    /// The sun field (single scattering can read it too).
+    pub fn sun_transmittance(&self) -> &SunTransmittance {
+        &self.sun
+    }
+
+    /// Level spacings h_l (world units).
+    pub fn spacings(&self) -> &[f32; LEVELS] {
+        &self.h
+    }
+
+    /// The stencil frame at a query: (u, v, w) with w toward the sun and `omega` in the
+    /// u-w plane (u along omega's part across w; any u when omega is parallel to w).
+    #[inline]
+    pub fn frame(&self, omega: Vec3) -> (Vec3, Vec3, Vec3) {
+        let w = self.w;
+        let across = omega - w * omega.dot(w);
+        let u = match across.try_normalize() {
+            Some(u) if across.length_squared() > 1e-8 => u,
+            _ => engine::sampling::coordinate_system(w).0,
+        };
+        (u, w.cross(u), w)
+    }
+
+    /// The stencil's world positions: `out[l * 27 + p]`.
+    #[inline]
+    pub fn stencil(&self, x: Vec3, omega: Vec3, out: &mut [Vec3; LEVELS * POINTS]) {
+        let (u, v, w) = self.frame(omega);
+        for l in 0..LEVELS {
+            for p in 0..POINTS {
+                let o = offset(p) * self.h[l];
+                out[l * POINTS + p] = x + u * o.x + v * o.y + w * o.z;
+            }
+        }
+    }
+
+    /// The feature vector at `x` for query direction `omega` (unit, pointing away from
+    /// x) of a medium with `albedo` and phase mean cosine `g` into `out` (length
+    /// [`N_FEATURES`]). No allocation.
+    pub fn features(&self, albedo: f32, g: f32, x: Vec3, omega: Vec3, out: &mut [f32]) {
+        assert_eq!(out.len(), N_FEATURES, "feature vector length");
+        let mut pts = [Vec3::ZERO; LEVELS * POINTS];
+        self.stencil(x, omega, &mut pts);
+        out[0] = absorption_feature(albedo);
+        out[1] = g;
+        let cos = omega.dot(self.w).clamp(-1.0, 1.0);
+        out[2] = cos;
+        let mut gn = g;
+        for o in &mut out[3..HEAD] {
+            *o = ln_phase(gn, -cos);
+            gn *= g;
+        }
+        let mut raw = [0.0f32; 2 * LEVELS * POINTS];
+        self.raw_stencil(&pts, &mut raw);
+        let sin = (1.0 - cos * cos).max(0.0).sqrt();
+        for (o, r) in out[HEAD..].chunks_exact_mut(3 * PLANE).zip(raw.chunks_exact(3 * PLANE)) {
+            for (o, r) in o.chunks_exact_mut(PLANE).zip(r.chunks_exact(PLANE)) {
+                encode_plane(r, sin, o);
+            }
+        }
+    }
+
+    /// The stencil's raw values at `pts` (from [`CloudField::stencil`]): the cell
+    /// optical thicknesses ln(1 + rho d h_l) in `raw[..162]`, the sun's tau_hat in
+    /// `raw[162..]`, both indexed l * 27 + p.
+    pub fn raw_stencil(&self, pts: &[Vec3; LEVELS * POINTS], raw: &mut [f32; 2 * LEVELS * POINTS]) {
+        let (dens, taus) = raw.split_at_mut(LEVELS * POINTS);
+        for l in 0..LEVELS {
+            let range = l * POINTS..(l + 1) * POINTS;
+            self.pyramid.lookup_many(self.blends[l], &pts[range.clone()], &mut dens[range.clone()]);
+            let cell = self.rho * self.h[l];
+            for d in &mut dens[range] {
+                *d = (d.max(0.0) * cell).ln_1p();
+            }
+        }
+        for (t, p) in taus.iter_mut().zip(pts) {
+            *t = crate::global::features::tau_hat(self.sun.optical_depth(*p));
+        }
+    }
+}
+
+/// Points of one stencil plane (fixed c): 3 x 3.
+pub const PLANE: usize = 9;
+
+/// One plane's nine raw values (index (a + 1) + 3 (b + 1)) as the network sees them:
+/// the centre, the mean m of the ring of eight around it, and sin(theta) (v - m) for
+/// the first seven ring points (the eighth follows from the mean). The ring's layout
+/// depends on the azimuth of the query about the sun, which is undefined when the
+/// query points along the sun's axis; scaling what depends on it by sin(theta)
+/// makes the features continuous there (they tend to rotation-invariant ones), so a
+/// frontlit or backlit view is not a discontinuity the network has to learn around.
+#[inline]
+pub fn encode_plane(raw: &[f32], sin_theta: f32, out: &mut [f32]) {
+    const RING: [usize; 8] = [0, 1, 2, 3, 5, 6, 7, 8];
+    let m = RING.iter().map(|&i| raw[i]).sum::<f32>() / 8.0;
+    out[0] = raw[4];
+    out[1] = m;
+    for (o, &i) in out[2..].iter_mut().zip(&RING[..7]) {
+        *o = sin_theta * (raw[i] - m);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use engine::{Bounds3, DensityGrid, PhaseFunction};
+    use glam::UVec3;
+    use std::sync::Arc;
+
+    fn blob_medium() -> Medium {
+        let grid = DensityGrid::from_fn(UVec3::splat(48), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)), |p| {
+            let r = (p - Vec3::new(0.05, 0.0, -0.03)).length();
+            (1.0 - r / 0.35).clamp(0.0, 1.0) * (1.0 + 0.5 * (9.0 * p.x).sin() * (7.0 * p.y).cos())
+        })
+        .unwrap();
+        Medium::new(Arc::new(grid), 30.0, 0.97, PhaseFunction::HenyeyGreenstein { g: 0.6 }).unwrap()
+    }
+
+    #[test]
+    fn layout_names_and_offsets() {
+        assert_eq!(feature_names().len(), N_FEATURES);
+        assert_eq!(offset(13), Vec3::ZERO);
+        assert_eq!(offset(0), Vec3::splat(-1.0));
+        assert_eq!(offset(26), Vec3::splat(1.0));
+        let mut seen = std::collections::HashSet::new();
+        for p in 0..POINTS {
+            let o = offset(p);
+            assert!(o.abs().max_element() <= 1.0);
+            assert!(seen.insert(o.to_array().map(|v| v as i32)), "offset {p} repeats");
+        }
+    }
+
+    /// The frame is orthonormal, w points to the sun, omega lies in the u-w plane with
+    /// a non-negative u component.
+    #[test]
+    fn frame_holds_the_query_in_the_u_w_plane() {
+        let m = blob_medium();
+        let sun = Sun::new(Vec3::new(0.3, -1.0, 0.2), Vec3::ONE, 0.0).unwrap();
+        let f = CloudField::build(&m, &sun, 64);
+        let mut rng = engine::Rng::new(3, 0, 0);
+        for _ in 0..200 {
+            let omega = engine::sampling::sample_uniform_sphere(rng.uniform2());
+            let (u, v, w) = f.frame(omega);
+            assert!((w + sun.direction()).length() < 1e-5);
+            for (a, b) in [(u, v), (u, w), (v, w)] {
+                assert!(a.dot(b).abs() < 1e-5);
+            }
+            assert!((u.length() - 1.0).abs() < 1e-5 && (v.length() - 1.0).abs() < 1e-5);
+            assert!(omega.dot(v).abs() < 1e-4 && omega.dot(u) >= -1e-6);
+        }
+        // Parallel to the sun: still a frame.
+        let (u, v, _) = f.frame(-sun.direction());
+        assert!((u.length() - 1.0).abs() < 1e-5 && u.dot(v).abs() < 1e-5);
+    }
+
+    /// Every feature against brute force: the density by a direct Gaussian-weighted sum
+    /// over the voxels, the sun's optical depth by marching the medium toward the sun.
+    #[test]
+    fn features_match_brute_force() {
+        let m = blob_medium();
+        let sun = Sun::new(Vec3::new(-0.4, -1.0, 0.5), Vec3::ONE, 0.0).unwrap();
+        let f = CloudField::build(&m, &sun, 128);
+        let grid = m.grid();
+        let vs = grid.voxel_size().x;
+        let mut out = vec![0.0; N_FEATURES];
+        let mut pts = [Vec3::ZERO; LEVELS * POINTS];
+        let mut rng = engine::Rng::new(5, 0, 0);
+        for _ in 0..6 {
+            let x = (Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5) * 0.5;
+            let omega = engine::sampling::sample_uniform_sphere(rng.uniform2());
+            f.features(0.97, 0.6, x, omega, &mut out);
+            assert_eq!(out[0], absorption_feature(0.97));
+            assert!((out[0] - (0.031f32).ln()).abs() < 1e-5);
+            assert!((out[1] - 0.6).abs() < 1e-6);
+            let cos = omega.dot(-sun.direction());
+            assert!((out[2] - cos).abs() < 1e-5);
+            // The phase terms against the engine's Henyey-Greenstein: light from the sun
+            // (travelling along its direction) scattered into omega.
+            for n in 1..=PHASE_TERMS {
+                let hg = PhaseFunction::HenyeyGreenstein { g: 0.6f32.powi(n as i32) };
+                let p = hg.eval(omega, -sun.direction());
+                assert!((out[2 + n] - (4.0 * std::f32::consts::PI * p).ln()).abs() < 1e-4, "term {n}");
+            }
+            f.stencil(x, omega, &mut pts);
+            let mut raw = [0.0f32; 2 * LEVELS * POINTS];
+            f.raw_stencil(&pts, &mut raw);
+            // The encoding keeps the raw values: centre, ring mean and the scaled
+            // deviations give them back.
+            let sin = (1.0 - cos * cos).sqrt();
+            for (plane, enc) in out[HEAD..].chunks_exact(PLANE).enumerate() {
+                let r = &raw[plane * PLANE..(plane + 1) * PLANE];
+                assert_eq!(enc[0], r[4]);
+                let ring = [0, 1, 2, 3, 5, 6, 7, 8];
+                let mean = ring.iter().map(|&i| r[i]).sum::<f32>() / 8.0;
+                assert!((enc[1] - mean).abs() < 1e-5);
+                for (k, &i) in ring[..7].iter().enumerate() {
+                    assert!((enc[2 + k] / sin + mean - r[i]).abs() < 1e-3, "plane {plane} point {i}");
+                }
+            }
+            for l in 0..LEVELS {
+                let s = 0.5 * f.h[l];
+                for p in [0, 4, 13, 22, 26] {
+                    let q = pts[l * POINTS + p];
+                    // Gaussian of std s over voxel centres (density zero outside).
+                    let (mut num, mut den) = (0.0f64, 0.0f64);
+                    let r = (4.0 * s / vs).ceil() as i32 + 1;
+                    let c = ((q - grid.origin()) / vs - 0.5).round().as_ivec3();
+                    for dz in -r..=r {
+                        for dy in -r..=r {
+                            for dx in -r..=r {
+                                let i = c + glam::IVec3::new(dx, dy, dz);
+                                let pc = grid.origin() + (i.as_vec3() + 0.5) * vs;
+                                let wgt = (-(pc - q).length_squared() as f64 / (2.0 * (s * s) as f64)).exp();
+                                den += wgt;
+                                let inside = i.cmpge(glam::IVec3::ZERO).all() && i.cmplt(grid.dims().as_ivec3()).all();
+                                if inside {
+                                    num += wgt * grid.voxel(i.x as u32, i.y as u32, i.z as u32) as f64;
+                                }
+                            }
+                        }
+                    }
+                    let brute = (num / den) as f32;
+                    let got = (raw[l * POINTS + p].exp() - 1.0) / (m.rho() * f.h[l]);
+                    // The pyramid's filter is Gaussian up to its trilinear interpolation
+                    // and 16-bit samples: a few per cent of the peak density.
+                    assert!((got - brute).abs() < 0.04 + 0.05 * brute, "level {l} point {p}: {got} vs {brute}");
+                    // The sun's optical depth: a fine march from the stencil point.
+                    // The field is trilinear between nodes one voxel apart: within a
+                    // voxel's optical thickness at the peak density (1.5) of the march.
+                    let march = m.optical_depth(q, -sun.direction(), f32::INFINITY, 0.25 * vs, f32::INFINITY);
+                    let tau = (-raw[LEVELS * POINTS + l * POINTS + p]).exp() - 1.0;
+                    assert!((tau - march).abs() <= 0.05 * march + 1.5 * m.rho() * vs, "{tau} vs {march}");
+                }
+            }
+        }
+    }
+
+    /// The features are continuous where the frame is not: queries ever closer to the
+    /// sun's axis from different azimuths give ever closer feature vectors.
+    #[test]
+    fn features_are_continuous_along_the_sun_axis() {
+        let m = blob_medium();
+        let sun = Sun::new(Vec3::new(0.2, -1.0, 0.3), Vec3::ONE, 0.0).unwrap();
+        let f = CloudField::build(&m, &sun, 64);
+        let w = -sun.direction();
+        let (a, b) = engine::sampling::coordinate_system(w);
+        let x = Vec3::new(0.05, 0.02, -0.04);
+        let (mut p, mut q) = (vec![0.0; N_FEATURES], vec![0.0; N_FEATURES]);
+        let mut last = f32::INFINITY;
+        for eps in [1e-1f32, 1e-2, 1e-3, 1e-4] {
+            f.features(1.0, 0.8, x, (w + a * eps).normalize(), &mut p);
+            f.features(1.0, 0.8, x, (w - b * eps).normalize(), &mut q);
+            let d = p.iter().zip(&q).map(|(u, v)| (u - v).abs()).fold(0.0, f32::max);
+            assert!(d < last, "eps {eps}: {d} does not shrink (was {last})");
+            last = d;
+        }
+        assert!(last < 1e-3, "{last}");
+    }
+
+    /// Same inputs, same features, to the bit, and a field built for one sun answers
+    /// for that sun only.
+    #[test]
+    fn features_are_deterministic() {
+        let m = blob_medium();
+        let sun = Sun::new(Vec3::new(0.0, -1.0, 0.0), Vec3::ONE, 0.0).unwrap();
+        let a = CloudField::build(&m, &sun, 64);
+        let b =
+            rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap().install(|| CloudField::build(&m, &sun, 64));
+        let (mut fa, mut fb) = (vec![0.0; N_FEATURES], vec![0.0; N_FEATURES]);
+        a.features(0.9, 0.5, Vec3::new(0.1, 0.0, 0.05), Vec3::X, &mut fa);
+        b.features(0.9, 0.5, Vec3::new(0.1, 0.0, 0.05), Vec3::X, &mut fb);
+        assert_eq!(fa, fb);
+        assert!(fa.iter().all(|v| v.is_finite()));
+    }
+}

@@ -1,0 +1,337 @@
+//! Training the cloud-aware model: standardized stencil features, the target
+//! ln(1 + 4 pi L_ms) for the output's scale, and a relative L2 loss in linear space
+//! ([`Loss::RelativeL2`]), so that the noisy, unbiased path-traced targets (a few paths
+//! per point, or one) train an unbiased model. The test split holds out whole clouds;
+//! the report gives the relative bias on them (sum of predictions over sum of
+//! targets, the quantity an image's bias follows), overall and per cloud, and the same
+//! on a held-out data set of clouds no training set draws.
+
+use super::datagen::CloudDataset;
+use super::features::{N_FEATURES, feature_names};
+use super::model::{CloudModel, CloudSidecar, MODEL_FORMAT, MODEL_FORMAT_VERSION, TARGET_TRANSFORM};
+use crate::nn::dense::Activation;
+use crate::nn::fit::{
+    EpochRecord, FitData, FitSchedule, Fitted, Loss, RunIdentity, TrainError, TrainObserver, TrainPaths, fit,
+    save_tensors, shuffle, write_text,
+};
+use crate::nn::mlp::Mlp;
+use crate::nn::optim::Optimizer;
+use engine::Rng;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+const FOUR_PI: f32 = 4.0 * std::f32::consts::PI;
+
+/// Which stored target to train on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TargetColumn {
+    /// The mean of the point's paths.
+    Mean,
+    /// The first path alone (a cheap, unbiased, noisy target).
+    OnePath,
+}
+
+impl TargetColumn {
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "mean" => Some(TargetColumn::Mean),
+            "one-path" => Some(TargetColumn::OnePath),
+            _ => None,
+        }
+    }
+
+    fn column(self) -> usize {
+        match self {
+            TargetColumn::Mean => 0,
+            TargetColumn::OnePath => 3,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CloudTrainConfig {
+    /// Network, epochs, batch, optimizer, learning rate and its decay, seed.
+    #[serde(flatten)]
+    pub schedule: FitSchedule,
+    /// Fraction of the clouds held out as the test split.
+    pub test_fraction: f64,
+    pub target: TargetColumn,
+    /// eps of the relative loss, in units of (4 pi L_ms)^2.
+    pub eps: f32,
+    /// Use at most this many training points (0: all), the first ones of each data
+    /// set in order: the data-set-size study trains on growing prefixes.
+    pub max_points: usize,
+}
+
+impl Default for CloudTrainConfig {
+    fn default() -> Self {
+        CloudTrainConfig {
+            schedule: FitSchedule {
+                hidden: vec![64, 64, 64],
+                activation: Activation::Relu,
+                epochs: 20,
+                batch: 512,
+                optimizer: Optimizer::Adam,
+                lr: 2e-3,
+                lr_decay: 0.85,
+                seed: 1,
+            },
+            test_fraction: 0.1,
+            target: TargetColumn::Mean,
+            eps: 2.5e-3,
+            max_points: 0,
+        }
+    }
+}
+
+impl CloudTrainConfig {
+    pub fn validate(&self) -> Result<(), TrainError> {
+        self.schedule.validate(self.test_fraction)?;
+        if !(self.eps.is_finite() && self.eps > 0.0) {
+            return Err(TrainError::Setting { flag: "--eps", why: "must be a positive number".into() });
+        }
+        Ok(())
+    }
+}
+
+/// Rows of one or more cloud data sets.
+pub struct CloudTrainData {
+    pub features: Vec<f32>,
+    /// The five stored targets per row.
+    pub targets: Vec<f32>,
+    /// Which cloud each row comes from: (data set index, chunk).
+    pub clouds: Vec<(u32, u64)>,
+    pub sources: Vec<String>,
+}
+
+impl CloudTrainData {
+    pub fn load(dirs: &[PathBuf]) -> Result<CloudTrainData, TrainError> {
+        if dirs.is_empty() {
+            return Err(TrainError::Data("no data set given".into()));
+        }
+        let mut out = CloudTrainData { features: vec![], targets: vec![], clouds: vec![], sources: vec![] };
+        for (k, d) in dirs.iter().enumerate() {
+            let ds = CloudDataset::load(d).map_err(|e| TrainError::Data(e.to_string()))?;
+            if ds.manifest.settings.held_out {
+                return Err(TrainError::Data(format!(
+                    "{} is a held-out data set: it tests the model and is never trained on (pass it as --held-out)",
+                    d.display()
+                )));
+            }
+            out.clouds.extend((0..ds.len()).map(|i| (k as u32, ds.cloud_of(i))));
+            out.features.extend_from_slice(&ds.features);
+            out.targets.extend_from_slice(&ds.targets);
+            out.sources.push(d.display().to_string());
+        }
+        Ok(out)
+    }
+
+    pub fn len(&self) -> usize {
+        self.clouds.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.clouds.is_empty()
+    }
+
+    fn row(&self, i: usize) -> &[f32] {
+        &self.features[i * N_FEATURES..(i + 1) * N_FEATURES]
+    }
+}
+
+/// Relative bias of predictions against targets over a set of rows, overall and per
+/// cloud.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct BiasReport {
+    pub points: usize,
+    pub clouds: usize,
+    /// sum(prediction) / sum(target) - 1 over all rows.
+    pub bias: f64,
+    /// Its standard error from the targets' own standard errors.
+    pub bias_std_error: f64,
+    /// |bias| per cloud: median and 90th percentile.
+    pub cloud_abs_bias_median: f64,
+    pub cloud_abs_bias_p90: f64,
+}
+
+/// The relative bias of `model` on `rows` of `features`/`targets` (5 columns, the
+/// stored mean as the reference) grouped by `clouds`.
+pub fn bias_report(
+    model: &CloudModel,
+    features: &[f32],
+    targets: &[f32],
+    clouds: &[(u32, u64)],
+    rows: &[usize],
+) -> BiasReport {
+    let mut scratch = model.mlp.scratch();
+    let mut per: std::collections::BTreeMap<(u32, u64), (f64, f64)> = Default::default();
+    let (mut sp, mut st, mut var) = (0.0f64, 0.0f64, 0.0f64);
+    for &i in rows {
+        let p = model.predict_features(&features[i * N_FEATURES..(i + 1) * N_FEATURES], &mut scratch) as f64;
+        let (t, se) = (targets[i * 5] as f64, targets[i * 5 + 1] as f64);
+        sp += p;
+        st += t;
+        var += se * se;
+        let e = per.entry(clouds[i]).or_default();
+        e.0 += p;
+        e.1 += t;
+    }
+    let mut abs: Vec<f64> = per.values().filter(|(_, t)| *t > 0.0).map(|(p, t)| (p / t - 1.0).abs()).collect();
+    abs.sort_by(f64::total_cmp);
+    let q = |p: f64| abs.get(((abs.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(f64::NAN);
+    BiasReport {
+        points: rows.len(),
+        clouds: per.len(),
+        bias: if st > 0.0 { sp / st - 1.0 } else { f64::NAN },
+        // (sp / st) has relative standard error sqrt(var) / st from the targets.
+        bias_std_error: if st > 0.0 { (sp / st) * var.sqrt() / st } else { f64::NAN },
+        cloud_abs_bias_median: q(0.5),
+        cloud_abs_bias_p90: q(0.9),
+    }
+}
+
+/// The final report.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CloudReport {
+    pub train_points: usize,
+    pub test: BiasReport,
+    pub held_out: Option<BiasReport>,
+    pub test_loss: f64,
+    pub samples_per_second: f64,
+    pub seconds: f64,
+    pub history: Vec<EpochRecord>,
+}
+
+/// Trains on `data` (the test split by cloud), reports on the test clouds and on
+/// `held_out` (a data set made with `--held-out`), writes OUT.safetensors, OUT.json,
+/// the loss history and the checkpoint; returns the loaded model and the report.
+#[allow(clippy::too_many_arguments)]
+pub fn train(
+    data: &CloudTrainData,
+    held_out: Option<&CloudDataset>,
+    cfg: &CloudTrainConfig,
+    out: &Path,
+    resume: bool,
+    command: &str,
+    code_version: &str,
+    observer: &dyn TrainObserver,
+) -> Result<(CloudModel, CloudReport), TrainError> {
+    cfg.validate()?;
+    let started = std::time::Instant::now();
+    let col = cfg.target.column();
+    // Rows with a finite, non-negative target and finite features.
+    let usable = |i: usize| {
+        let t = data.targets[i * 5 + col];
+        t.is_finite() && t >= 0.0 && data.row(i).iter().all(|v| v.is_finite())
+    };
+    // Clouds split by a seeded shuffle.
+    let mut ids: Vec<(u32, u64)> = data.clouds.clone();
+    ids.dedup();
+    let mut rng = Rng::new(cfg.schedule.seed, 0x73706c6974, 1); // "split"
+    shuffle(&mut ids, &mut rng);
+    let n_test = ((ids.len() as f64 * cfg.test_fraction).round() as usize).clamp(1, ids.len().saturating_sub(1).max(1));
+    let test_ids: std::collections::HashSet<(u32, u64)> = ids[..n_test].iter().copied().collect();
+    let (mut train_rows, mut test_rows) = (vec![], vec![]);
+    for i in 0..data.len() {
+        if !usable(i) {
+            continue;
+        }
+        if test_ids.contains(&data.clouds[i]) { test_rows.push(i) } else { train_rows.push(i) }
+    }
+    if cfg.max_points > 0 {
+        train_rows.truncate(cfg.max_points);
+    }
+    if train_rows.is_empty() || test_rows.is_empty() {
+        return Err(TrainError::Data(format!(
+            "{} training and {} test rows: use more clouds",
+            train_rows.len(),
+            test_rows.len()
+        )));
+    }
+    // Statistics of the training split (f64 accumulation).
+    let (mut mean, mut sq) = (vec![0.0f64; N_FEATURES], vec![0.0f64; N_FEATURES]);
+    let (mut ym, mut ysq) = (0.0f64, 0.0f64);
+    for &i in &train_rows {
+        for (k, v) in data.row(i).iter().enumerate() {
+            mean[k] += *v as f64;
+            sq[k] += (*v as f64).powi(2);
+        }
+        let y = (FOUR_PI * data.targets[i * 5 + col]).ln_1p() as f64;
+        ym += y;
+        ysq += y * y;
+    }
+    let n = train_rows.len() as f64;
+    let std_of = |s: f64, q: f64| {
+        let sd = (q / n - (s / n).powi(2)).max(0.0).sqrt();
+        if sd < 1e-6 { 1.0 } else { sd }
+    };
+    let feature_mean: Vec<f32> = mean.iter().map(|m| (m / n) as f32).collect();
+    let feature_std: Vec<f32> = mean.iter().zip(&sq).map(|(m, q)| std_of(*m, *q) as f32).collect();
+    let (target_mean, target_std) = ((ym / n) as f32, std_of(ym, ysq) as f32);
+    let standardize = |rows: &[usize]| {
+        let mut x = Vec::with_capacity(rows.len() * N_FEATURES);
+        for &i in rows {
+            x.extend(data.row(i).iter().enumerate().map(|(k, v)| (v - feature_mean[k]) / feature_std[k]));
+        }
+        x
+    };
+    // The loss compares 4 pi L_ms (the linear value the output stands for).
+    let targets = |rows: &[usize]| rows.iter().map(|&i| FOUR_PI * data.targets[i * 5 + col]).collect::<Vec<f32>>();
+    let fit_data = FitData {
+        n_f: N_FEATURES,
+        x_train: standardize(&train_rows),
+        y_train: targets(&train_rows),
+        x_test: standardize(&test_rows),
+        y_test: targets(&test_rows),
+        loss: Loss::RelativeL2 { mean: target_mean, std: target_std, eps: cfg.eps },
+    };
+    let paths = TrainPaths::new(out);
+    let identity = RunIdentity { config: cfg, sources: &data.sources, points: data.len() };
+    let Fitted { net, history, samples_per_second } =
+        fit(&fit_data, &cfg.schedule, &paths, resume, identity, observer)?;
+    let mut sidecar = CloudSidecar {
+        format: MODEL_FORMAT.into(),
+        format_version: MODEL_FORMAT_VERSION,
+        feature_names: feature_names(),
+        feature_mean,
+        feature_std,
+        target: TARGET_TRANSFORM.into(),
+        target_mean,
+        target_std,
+        hidden: cfg.schedule.hidden.clone(),
+        activation: cfg.schedule.activation,
+        training: serde_json::Value::Null,
+    };
+    let mlp: Mlp = net.to_mlp()?;
+    let model = CloudModel::new(sidecar.clone(), mlp);
+    // The test split is judged on the stored means (the precise reference) whatever
+    // the training column.
+    let test = bias_report(&model, &data.features, &data.targets, &data.clouds, &test_rows);
+    let held_out = held_out.map(|h| {
+        let clouds: Vec<(u32, u64)> = (0..h.len()).map(|i| (0, h.cloud_of(i))).collect();
+        let rows: Vec<usize> = (0..h.len()).filter(|&i| h.targets[i * 5].is_finite()).collect();
+        bias_report(&model, &h.features, &h.targets, &clouds, &rows)
+    });
+    let report = CloudReport {
+        train_points: train_rows.len(),
+        test,
+        held_out,
+        test_loss: history.last().map(|h| h.test_mse).unwrap_or(f64::NAN),
+        samples_per_second,
+        seconds: started.elapsed().as_secs_f64(),
+        history: history.clone(),
+    };
+    sidecar.training = serde_json::json!({
+        "command": command,
+        "code_version": code_version,
+        "data": data.sources,
+        "points": data.len(),
+        "config": cfg,
+        "report": report,
+    });
+    save_tensors(&net.named(), &paths.weights)?;
+    write_text(&paths.sidecar, &serde_json::to_string_pretty(&sidecar).expect("serializes"))?;
+    let model = CloudModel::load(&paths.weights).map_err(|e| TrainError::Data(e.to_string()))?;
+    Ok((model, report))
+}

@@ -1,0 +1,405 @@
+//! The training loop both MLP models share (the global model of thesis 5.2 and the
+//! cloud-aware model): a Glorot-initialized network, mini-batches in a seeded shuffle,
+//! mean squared error on standardized targets, SGD with momentum or Adam with a
+//! per-epoch learning-rate decay, per-epoch history, and a checkpoint after every
+//! epoch from which a run resumes to the same weights.
+
+use crate::dataset::npy::write_bytes_atomically;
+use crate::nn::dense::Activation;
+use crate::nn::mlp::Mlp;
+use crate::nn::optim::{OptState, Optimizer};
+use candle_core::{DType, Device, Tensor, Var};
+use engine::Rng;
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// Per-epoch record.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct EpochRecord {
+    pub epoch: usize,
+    pub lr: f64,
+    /// Mean squared error in the transformed, standardized space.
+    pub train_mse: f64,
+    pub test_mse: f64,
+    pub seconds: f64,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    #[error("{0}")]
+    Data(String),
+    #[error("{flag}: {why}")]
+    Setting { flag: &'static str, why: String },
+    #[error("candle: {0}")]
+    Candle(#[from] candle_core::Error),
+    #[error("{path}: {why}")]
+    File { path: PathBuf, why: String },
+    #[error("cancelled after epoch {0}; run again with --resume to continue")]
+    Cancelled(usize),
+}
+
+impl From<std::io::Error> for TrainError {
+    fn from(e: std::io::Error) -> Self {
+        TrainError::Data(e.to_string())
+    }
+}
+
+/// Fisher-Yates shuffle from our own seeded generator.
+pub fn shuffle<T>(v: &mut [T], rng: &mut Rng) {
+    for i in (1..v.len()).rev() {
+        let j = (rng.uniform_f64() * (i + 1) as f64) as usize;
+        v.swap(i, j.min(i));
+    }
+}
+
+/// The network's parameters as candle variables, layer by layer (weight [out, in], bias).
+pub struct Network {
+    pub params: Vec<(Var, Var)>,
+    pub activation: Activation,
+}
+
+impl Network {
+    /// Glorot-uniform weights (limit sqrt(6 / (in + out)), eq. 2.50), zero biases, from
+    /// our own seeded generator.
+    pub fn glorot(widths: &[usize], activation: Activation, seed: u64, dev: &Device) -> Result<Self, TrainError> {
+        let mut rng = Rng::new(seed, 0x676c6f726f74, 0); // "glorot"
+        let mut params = vec![];
+        for l in 0..widths.len() - 1 {
+            let (i, o) = (widths[l], widths[l + 1]);
+            let limit = (6.0 / (i + o) as f64).sqrt() as f32;
+            let w: Vec<f32> = (0..i * o).map(|_| (2.0 * rng.uniform() - 1.0) * limit).collect();
+            params.push((
+                Var::from_tensor(&Tensor::from_vec(w, (o, i), dev)?)?,
+                Var::from_tensor(&Tensor::zeros(o, DType::F32, dev)?)?,
+            ));
+        }
+        Ok(Network { params, activation })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        let mut h = x.clone();
+        let last = self.params.len() - 1;
+        for (l, (w, b)) in self.params.iter().enumerate() {
+            h = h.matmul(&w.as_tensor().t()?)?.broadcast_add(b.as_tensor())?;
+            if l < last {
+                h = match self.activation {
+                    Activation::Relu => h.relu()?,
+                    Activation::Tanh => h.tanh()?,
+                    Activation::Silu => h.silu()?,
+                };
+            }
+        }
+        h.squeeze(1)
+    }
+
+    /// Named tensors in the model file's convention: layers.L.weight / layers.L.bias.
+    pub fn named(&self) -> HashMap<String, Tensor> {
+        let mut m = HashMap::new();
+        for (l, (w, b)) in self.params.iter().enumerate() {
+            m.insert(format!("layers.{l}.weight"), w.as_tensor().clone());
+            m.insert(format!("layers.{l}.bias"), b.as_tensor().clone());
+        }
+        m
+    }
+
+    /// The fast evaluator of the same weights.
+    pub fn to_mlp(&self) -> candle_core::Result<Mlp> {
+        let mut layers = vec![];
+        for (w, b) in &self.params {
+            let (o, i) = w.as_tensor().dims2()?;
+            layers.push((i, o, w.as_tensor().flatten_all()?.to_vec1()?, b.as_tensor().to_vec1()?));
+        }
+        Ok(Mlp::new(&layers, self.activation))
+    }
+}
+
+/// Where training writes: OUT.safetensors, OUT.json, OUT.loss.csv, OUT.loss.png and the
+/// checkpoint OUT.checkpoint/.
+pub struct TrainPaths {
+    pub weights: PathBuf,
+    pub sidecar: PathBuf,
+    pub csv: PathBuf,
+    pub plot: PathBuf,
+    pub checkpoint: PathBuf,
+}
+
+impl TrainPaths {
+    pub fn new(out: &Path) -> Self {
+        let with = |ext: &str| {
+            let mut s = out.as_os_str().to_owned();
+            s.push(ext);
+            PathBuf::from(s)
+        };
+        TrainPaths {
+            weights: with(".safetensors"),
+            sidecar: with(".json"),
+            csv: with(".loss.csv"),
+            plot: with(".loss.png"),
+            checkpoint: with(".checkpoint"),
+        }
+    }
+}
+
+#[derive(Serialize, Deserialize)]
+struct CheckpointState<C> {
+    config: C,
+    sources: Vec<String>,
+    points: usize,
+    epoch: usize,
+    step: u64,
+    history: Vec<EpochRecord>,
+}
+
+// The writers' errors name the file.
+pub fn save_tensors(tensors: &HashMap<String, Tensor>, path: &Path) -> Result<(), TrainError> {
+    Ok(crate::nn::optim::save_safetensors(tensors, path)?)
+}
+
+pub fn write_text(path: &Path, text: &str) -> Result<(), TrainError> {
+    Ok(write_bytes_atomically(path, text.as_bytes())?)
+}
+
+/// Progress callbacks of a training run.
+pub trait TrainObserver: Sync {
+    /// Batches done in this epoch, of `total`.
+    fn batch(&self, _epoch: usize, _done: usize, _total: usize) {}
+    fn epoch(&self, _record: &EpochRecord) {}
+    fn cancelled(&self) -> bool {
+        false
+    }
+}
+
+pub struct Quiet;
+impl TrainObserver for Quiet {}
+
+/// Standardized training and test rows, and the targets the loss compares with.
+pub struct FitData {
+    pub n_f: usize,
+    pub x_train: Vec<f32>,
+    pub y_train: Vec<f32>,
+    pub x_test: Vec<f32>,
+    pub y_test: Vec<f32>,
+    pub loss: Loss,
+}
+
+/// What a fit minimizes.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Loss {
+    /// Mean squared error between the network's output and y (standardized,
+    /// transformed targets).
+    Mse,
+    /// Relative squared error in linear space: the network's output o stands for
+    /// v = exp(o std + mean) - 1, y holds raw values, and the loss is
+    /// (v - y)^2 / (sg(v)^2 + eps) with sg the value without its gradient (as neural
+    /// radiance caches train). The denominator does not depend on y, so the expected
+    /// gradient vanishes where v = E[y]: noisy unbiased targets train an unbiased
+    /// model.
+    RelativeL2 { mean: f32, std: f32, eps: f32 },
+}
+
+impl Loss {
+    fn eval(&self, out: &Tensor, y: &Tensor) -> candle_core::Result<Tensor> {
+        match *self {
+            Loss::Mse => candle_nn::loss::mse(out, y),
+            Loss::RelativeL2 { mean, std, eps } => {
+                let v = out.affine(std as f64, mean as f64)?.exp()?.affine(1.0, -1.0)?;
+                let den = v.detach().sqr()?.affine(1.0, eps as f64)?;
+                (v - y)?.sqr()?.div(&den)?.mean_all()
+            }
+        }
+    }
+}
+
+/// The network and schedule of a fit.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FitSchedule {
+    pub hidden: Vec<usize>,
+    pub activation: Activation,
+    pub epochs: usize,
+    pub batch: usize,
+    pub optimizer: Optimizer,
+    pub lr: f64,
+    pub lr_decay: f64,
+    pub seed: u64,
+}
+
+impl FitSchedule {
+    /// Checks the network and schedule (with the test split's `test_fraction`); the
+    /// error names the flag.
+    pub fn validate(&self, test_fraction: f64) -> Result<(), TrainError> {
+        let bad = |flag, why: &str| Err(TrainError::Setting { flag, why: why.into() });
+        if self.hidden.is_empty() || self.hidden.contains(&0) {
+            return bad("--hidden", "needs at least one layer, each at least 1 wide");
+        }
+        if let Err((flag, why)) =
+            crate::nn::optim::check_schedule(self.epochs, self.batch, self.lr, self.lr_decay, test_fraction)
+        {
+            return bad(flag, why);
+        }
+        if let Optimizer::Sgd { momentum } = self.optimizer {
+            if !(0.0..1.0).contains(&momentum) {
+                return bad("--momentum", "must lie in [0, 1)");
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What a checkpoint must match to be resumed: the run's configuration, its data
+/// sources and their size.
+pub struct RunIdentity<'a, C> {
+    pub config: &'a C,
+    pub sources: &'a [String],
+    pub points: usize,
+}
+
+/// The fitted network and how the fit went.
+pub struct Fitted {
+    pub net: Network,
+    pub history: Vec<EpochRecord>,
+    /// Rows trained on per second, over this run's epochs.
+    pub samples_per_second: f64,
+}
+
+/// Fits an MLP to `data` under `schedule`, writing the checkpoint and the loss history
+/// after every epoch; with `resume`, continues from the checkpoint if it was made by
+/// the same run (`identity`).
+pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
+    data: &FitData,
+    schedule: &FitSchedule,
+    paths: &TrainPaths,
+    resume: bool,
+    identity: RunIdentity<'_, C>,
+    observer: &dyn TrainObserver,
+) -> Result<Fitted, TrainError> {
+    let dev = Device::Cpu;
+    let cfg = schedule;
+    let checkpoint = paths.checkpoint.as_path();
+    let n_f = data.n_f;
+    let mut widths = vec![n_f];
+    widths.extend(&cfg.hidden);
+    widths.push(1);
+    let net = Network::glorot(&widths, cfg.activation, cfg.seed, &dev)?;
+    let vars: Vec<&Var> = net.params.iter().flat_map(|(w, b)| [w, b]).collect();
+    let mut opt = OptState::new(&vars)?;
+    let mut history: Vec<EpochRecord> = vec![];
+    let mut first_epoch = 0;
+    let state_path = checkpoint.join("state.json");
+    if resume && state_path.exists() {
+        let text = std::fs::read_to_string(&state_path)
+            .map_err(|e| TrainError::File { path: state_path.clone(), why: e.to_string() })?;
+        let st: CheckpointState<C> = serde_json::from_str(&text)
+            .map_err(|e| TrainError::File { path: state_path.clone(), why: e.to_string() })?;
+        if st.config != *identity.config || st.sources != identity.sources || st.points != identity.points {
+            return Err(TrainError::File {
+                path: state_path,
+                why: "the checkpoint was made with other settings or data; train without --resume to start over".into(),
+            });
+        }
+        let t = candle_core::safetensors::load(checkpoint.join("state.safetensors"), &dev)?;
+        for (k, var) in vars.iter().enumerate() {
+            let get = |name: String| {
+                t.get(&name)
+                    .cloned()
+                    .ok_or_else(|| TrainError::File { path: checkpoint.to_owned(), why: format!("{name} missing") })
+            };
+            var.set(&get(format!("param.{k}"))?)?;
+            opt.m[k] = get(format!("m.{k}"))?;
+            opt.v[k] = get(format!("v.{k}"))?;
+        }
+        opt.step = st.step;
+        first_epoch = st.epoch;
+        history = st.history;
+    }
+    let n_train = data.y_train.len();
+    let x_test = Tensor::from_slice(&data.x_test, (data.y_test.len(), n_f), &dev)?;
+    let y_test = Tensor::from_slice(&data.y_test, data.y_test.len(), &dev)?;
+    let test_mse = |net: &Network| -> candle_core::Result<f64> {
+        let p = net.forward(&x_test)?;
+        data.loss.eval(&p, &y_test)?.to_scalar::<f32>().map(|v| v as f64)
+    };
+    let mut order: Vec<usize> = (0..n_train).collect();
+    let n_batches = n_train.div_ceil(cfg.batch);
+    let mut xb = Vec::with_capacity(cfg.batch * n_f);
+    let mut yb = Vec::with_capacity(cfg.batch);
+    let mut trained_samples = 0u64;
+    let train_started = std::time::Instant::now();
+    for epoch in first_epoch..cfg.epochs {
+        let t0 = std::time::Instant::now();
+        let lr = cfg.lr * cfg.lr_decay.powi(epoch as i32);
+        let mut rng = Rng::new(cfg.seed, 0x65706f6368, epoch as u64); // "epoch"
+        order.iter_mut().enumerate().for_each(|(i, o)| *o = i);
+        shuffle(&mut order, &mut rng);
+        let mut loss_sum = 0.0f64;
+        for (b, idx) in order.chunks(cfg.batch).enumerate() {
+            if observer.cancelled() {
+                return Err(TrainError::Cancelled(epoch));
+            }
+            xb.clear();
+            yb.clear();
+            for &i in idx {
+                xb.extend_from_slice(&data.x_train[i * n_f..(i + 1) * n_f]);
+                yb.push(data.y_train[i]);
+            }
+            let x = Tensor::from_slice(&xb, (idx.len(), n_f), &dev)?;
+            let y = Tensor::from_slice(&yb, idx.len(), &dev)?;
+            let loss = data.loss.eval(&net.forward(&x)?, &y)?;
+            let grads = loss.backward()?;
+            opt.apply(cfg.optimizer, lr, &vars, &grads)?;
+            loss_sum += loss.to_scalar::<f32>()? as f64 * idx.len() as f64;
+            trained_samples += idx.len() as u64;
+            observer.batch(epoch, b + 1, n_batches);
+        }
+        let record = EpochRecord {
+            epoch: epoch + 1,
+            lr,
+            train_mse: loss_sum / n_train as f64,
+            test_mse: test_mse(&net)?,
+            seconds: t0.elapsed().as_secs_f64(),
+        };
+        if !record.train_mse.is_finite() {
+            return Err(TrainError::Data(format!(
+                "training diverged in epoch {} (loss {}); lower --lr",
+                epoch + 1,
+                record.train_mse
+            )));
+        }
+        observer.epoch(&record);
+        history.push(record);
+        // Checkpoint: parameters, optimizer moments and history.
+        let mut t = HashMap::new();
+        for (k, var) in vars.iter().enumerate() {
+            t.insert(format!("param.{k}"), var.as_tensor().clone());
+            t.insert(format!("m.{k}"), opt.m[k].clone());
+            t.insert(format!("v.{k}"), opt.v[k].clone());
+        }
+        save_tensors(&t, &checkpoint.join("state.safetensors"))?;
+        let st = CheckpointState {
+            config: identity.config.clone(),
+            sources: identity.sources.to_vec(),
+            points: identity.points,
+            epoch: epoch + 1,
+            step: opt.step,
+            history: history.clone(),
+        };
+        write_text(&state_path, &serde_json::to_string_pretty(&st).expect("serializes"))?;
+        write_history(paths, &history)?;
+    }
+    let samples_per_second = trained_samples as f64 / train_started.elapsed().as_secs_f64().max(1e-9);
+    Ok(Fitted { net, history, samples_per_second })
+}
+
+/// Writes OUT.loss.csv and OUT.loss.png from the history.
+pub fn write_history(paths: &TrainPaths, history: &[EpochRecord]) -> Result<(), TrainError> {
+    let mut csv = String::from("epoch,lr,train_mse,test_mse,seconds\n");
+    for h in history {
+        csv += &format!("{},{},{},{},{:.3}\n", h.epoch, h.lr, h.train_mse, h.test_mse, h.seconds);
+    }
+    write_text(&paths.csv, &csv)?;
+    let points: Vec<(f64, f64, f64)> = history.iter().map(|h| (h.epoch as f64, h.train_mse, h.test_mse)).collect();
+    let png = crate::plot::loss_plot_png("", "MSE", [crate::plot::TRAIN_COLOUR, crate::plot::TEST_COLOUR], &points);
+    Ok(write_bytes_atomically(&paths.plot, &png)?)
+}

@@ -1,0 +1,108 @@
+//! The models that answer prediction at bounce k, behind one type: the thesis's
+//! global model (the default) and the cloud-aware model. A model file says which it is
+//! (its sidecar's `format`); binding one to a cloud and a sun gives the engine's
+//! [`InScatterPredictor`].
+
+use crate::cloud::{BoundCloudModel, CloudModel};
+use crate::global::model::ModelError;
+use crate::global::{BoundGlobalModel, GlobalModel};
+use engine::{InScatterPredictor, Medium, Sun};
+use std::path::Path;
+use std::sync::Arc;
+
+/// Which shipped model: `render.predictor` in scene files, `--predictor` on the
+/// command line.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PredictorKind {
+    /// The cloud-aware model ([`crate::cloud`]).
+    Cloud,
+    /// The thesis's global model ([`crate::global`]), the default.
+    #[default]
+    Global,
+}
+
+impl PredictorKind {
+    pub const NAMES: &'static str = "global, cloud";
+
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "cloud" => Some(PredictorKind::Cloud),
+            "global" => Some(PredictorKind::Global),
+            _ => None,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            PredictorKind::Cloud => "cloud",
+            PredictorKind::Global => "global",
+        }
+    }
+}
+
+/// A loaded model of prediction at bounce k.
+#[derive(Clone, Debug)]
+pub enum PredictionModel {
+    Cloud(Arc<CloudModel>),
+    Global(Arc<GlobalModel>),
+}
+
+impl PredictionModel {
+    /// The model compiled into Nimbus.
+    pub fn shipped(kind: PredictorKind) -> Result<Self, ModelError> {
+        Ok(match kind {
+            PredictorKind::Cloud => PredictionModel::Cloud(CloudModel::shipped()?),
+            PredictorKind::Global => PredictionModel::Global(GlobalModel::shipped()?),
+        })
+    }
+
+    /// A model file (.safetensors with its .json sidecar), of either kind.
+    pub fn load(path: &Path) -> Result<Self, ModelError> {
+        let json = path.with_extension("json");
+        let text =
+            std::fs::read_to_string(&json).map_err(|e| ModelError::File { path: json.clone(), why: e.to_string() })?;
+        let format = serde_json::from_str::<serde_json::Value>(&text)
+            .ok()
+            .and_then(|v| v.get("format").and_then(|f| f.as_str()).map(str::to_owned));
+        if format.as_deref() == Some(crate::cloud::model::MODEL_FORMAT) {
+            Ok(PredictionModel::Cloud(Arc::new(CloudModel::load(path)?)))
+        } else {
+            Ok(PredictionModel::Global(Arc::new(GlobalModel::load(path)?)))
+        }
+    }
+
+    /// `path` if given, else the shipped model of `kind`.
+    pub fn load_or_shipped(path: Option<&Path>, kind: PredictorKind) -> Result<Self, ModelError> {
+        match path {
+            Some(p) => Self::load(p),
+            None => Self::shipped(kind),
+        }
+    }
+
+    pub fn kind(&self) -> PredictorKind {
+        match self {
+            PredictionModel::Cloud(_) => PredictorKind::Cloud,
+            PredictionModel::Global(_) => PredictorKind::Global,
+        }
+    }
+
+    /// Binds the model to `medium` and `sun`: the fields its features read. The
+    /// global model's depth field gets at most `max_nodes` nodes per axis (64 values a
+    /// node); the cloud model's sun field, one value a node, twice as many (at most 256).
+    pub fn bind(&self, medium: &Medium, sun: &Sun, max_nodes: u32) -> Arc<dyn InScatterPredictor> {
+        match self {
+            PredictionModel::Cloud(m) => {
+                Arc::new(BoundCloudModel::new(m.clone(), medium, sun, (2 * max_nodes).clamp(2, 256)))
+            }
+            PredictionModel::Global(m) => Arc::new(BoundGlobalModel::new(m.clone(), medium, sun, max_nodes)),
+        }
+    }
+}
+
+/// The fingerprint of the shipped model of `kind` (render caches key on it).
+pub fn shipped_fingerprint(kind: PredictorKind) -> u64 {
+    match kind {
+        PredictorKind::Cloud => crate::cloud::model::shipped_fingerprint(),
+        PredictorKind::Global => crate::global::model::shipped_fingerprint(),
+    }
+}

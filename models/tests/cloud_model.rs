@@ -1,0 +1,200 @@
+//! The cloud-aware model's pipeline on a small data set: the generator gives the same
+//! bytes for 1 and 2 threads, after a stop and resume, and as merged shards; refuses
+//! changed settings and held-out clouds in training; every row is consistent with its
+//! cloud and vertex; training resumes to the same weights; the fast evaluator agrees
+//! with candle; the model files round-trip and broken ones are refused; and the bound
+//! predictor answers through the engine's trait.
+
+use models::cloud::datagen::{CloudDataset, CloudSpec, HELD_OUT_PRESETS, generate};
+use models::cloud::features::N_FEATURES;
+use models::cloud::train::{CloudTrainConfig, CloudTrainData, train};
+use models::cloud::{BoundCloudModel, CloudModel};
+use models::dataset::{DataSpec, Shard};
+use models::nn::fit::{EpochRecord, Quiet, TrainObserver};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+fn spec() -> CloudSpec {
+    CloudSpec {
+        points: 40,
+        points_per_cloud: 8,
+        resolution: 16,
+        presets: vec!["scene-b".into()],
+        preset_every: 3,
+        rho: [5.0, 40.0],
+        samples: 4,
+        field_nodes: 24,
+        seed: 9,
+        ..Default::default()
+    }
+}
+
+fn bytes(d: &Path) -> (Vec<u8>, Vec<u8>) {
+    (std::fs::read(d.join("features.npy")).unwrap(), std::fs::read(d.join("targets.npy")).unwrap())
+}
+
+fn run(s: &CloudSpec, shard: Shard, d: &Path, threads: usize, cancel: &AtomicBool) -> Result<(), String> {
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+    pool.install(|| generate(s, shard, d, "test", &|_| {}, cancel)).map(|_| ()).map_err(|e| e.to_string())
+}
+
+#[test]
+fn generator_is_deterministic_resumable_and_shardable() {
+    let s = spec();
+    let never = AtomicBool::new(false);
+    let root = tempfile::tempdir().unwrap();
+    let dir = |n: &str| -> PathBuf { root.path().join(n) };
+    run(&s, Shard::ALL, &dir("a"), 1, &never).unwrap();
+    run(&s, Shard::ALL, &dir("b"), 2, &never).unwrap();
+    assert_eq!(bytes(&dir("a")), bytes(&dir("b")), "1 and 2 threads differ");
+
+    let ds = CloudDataset::load(&dir("a")).unwrap();
+    assert_eq!(ds.len(), 40);
+    assert_eq!(ds.features.len(), 40 * N_FEATURES);
+    for (i, t) in ds.targets.chunks_exact(5).enumerate() {
+        // Mean >= 0, a standard error, the path count, one path's value, a vertex 1..3.
+        assert!(t[0] >= 0.0 && t[1] >= 0.0 && t[2] == 4.0 && t[3] >= 0.0, "row {i}: {t:?}");
+        assert!((1.0..=3.0).contains(&t[4]) && t[4].fract() == 0.0, "row {i}: {t:?}");
+        let f = &ds.features[i * N_FEATURES..(i + 1) * N_FEATURES];
+        assert!(f.iter().all(|v| v.is_finite()), "row {i}");
+        // One medium per cloud: the albedo and g features are shared within a chunk.
+        let first = &ds.features[(i / 8) * 8 * N_FEATURES..][..2];
+        assert_eq!(&f[..2], first, "row {i}");
+    }
+    assert_ne!(ds.features[..2], ds.features[8 * N_FEATURES..8 * N_FEATURES + 2], "clouds 0 and 1 share a medium");
+
+    // Stopped after the first chunk, resumed: the same bytes.
+    let cancel = AtomicBool::new(false);
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let stopped = pool.install(|| {
+        generate(
+            &s,
+            Shard::ALL,
+            &dir("c"),
+            "test",
+            &|n| {
+                if n >= 8 {
+                    cancel.store(true, Ordering::Relaxed)
+                }
+            },
+            &cancel,
+        )
+    });
+    assert!(stopped.is_err(), "the run should have been cancelled");
+    assert!(models::dataset::chunk_path(&dir("c"), 0).exists());
+    run(&s, Shard::ALL, &dir("c"), 2, &never).unwrap();
+    assert_eq!(bytes(&dir("a")), bytes(&dir("c")), "resumed run differs");
+
+    // Two shards merged.
+    run(&s, Shard { index: 0, count: 2 }, &dir("s0"), 2, &never).unwrap();
+    run(&s, Shard { index: 1, count: 2 }, &dir("s1"), 1, &never).unwrap();
+    std::fs::create_dir_all(dir("m")).unwrap();
+    models::dataset::merge::<CloudSpec>(&[dir("s0"), dir("s1")], &dir("m")).unwrap();
+    assert_eq!(bytes(&dir("a")), bytes(&dir("m")), "merged shards differ");
+
+    // Changed settings in the same directory, held-out presets and bad ranges are
+    // refused, naming the flag.
+    let e = run(&CloudSpec { samples: 5, ..s.clone() }, Shard::ALL, &dir("a"), 1, &never).unwrap_err();
+    assert!(e.contains("samples"), "{e}");
+    let e = CloudSpec { presets: vec![HELD_OUT_PRESETS[0].into()], ..s.clone() }.validate().unwrap_err();
+    assert!(e.to_string().contains("--presets") && e.to_string().contains("held-out"), "{e}");
+    let e = CloudSpec { vertex_weights: [0.5, 0.5, 0.5], ..s.clone() }.validate().unwrap_err();
+    assert!(e.to_string().contains("--vertex-weights"), "{e}");
+
+    // A held-out set draws other clouds and is refused as training data.
+    let h = CloudSpec { held_out: true, presets: vec![], ..s.clone() };
+    run(&h, Shard::ALL, &dir("h"), 2, &never).unwrap();
+    for c in 0..h.n_chunks() {
+        assert_ne!(h.cloud(c).1, s.cloud(c).1, "cloud {c} of the held-out set is a training cloud");
+    }
+    let e = CloudTrainData::load(&[dir("h")]).err().unwrap();
+    assert!(e.to_string().contains("held-out"), "{e}");
+}
+
+struct StopAfter(usize, AtomicUsize);
+impl TrainObserver for StopAfter {
+    fn epoch(&self, r: &EpochRecord) {
+        self.1.store(r.epoch, Ordering::SeqCst);
+    }
+    fn cancelled(&self) -> bool {
+        self.1.load(Ordering::SeqCst) >= self.0
+    }
+}
+
+#[test]
+fn training_resumes_and_the_model_round_trips() {
+    let s = CloudSpec { points: 96, points_per_cloud: 8, ..spec() };
+    let root = tempfile::tempdir().unwrap();
+    let data_dir = root.path().join("data");
+    run(&s, Shard::ALL, &data_dir, 2, &AtomicBool::new(false)).unwrap();
+    let data = CloudTrainData::load(std::slice::from_ref(&data_dir)).unwrap();
+    let mut cfg = CloudTrainConfig { test_fraction: 0.25, ..Default::default() };
+    (cfg.schedule.hidden, cfg.schedule.epochs, cfg.schedule.batch) = (vec![16, 8], 4, 16);
+    let (full, report) = train(&data, None, &cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
+    // The test split holds out whole clouds: 3 of 12.
+    assert_eq!(report.test.clouds, 3);
+    assert_eq!(report.test.points + report.train_points, 96);
+    assert!(report.test.bias.is_finite() && report.test.bias_std_error > 0.0, "{:?}", report.test);
+    // Stopped after 2 epochs, resumed: the same weights as the straight run.
+    let stop = StopAfter(2, Default::default());
+    let e = train(&data, None, &cfg, &root.path().join("b"), false, "test", "test", &stop).err().unwrap();
+    assert!(e.to_string().contains("--resume"), "{e}");
+    train(&data, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
+    assert_eq!(
+        std::fs::read(root.path().join("a.safetensors")).unwrap(),
+        std::fs::read(root.path().join("b.safetensors")).unwrap(),
+        "resumed training differs"
+    );
+    // The fast evaluator against candle on the same weights, and the loaded model
+    // against the one returned.
+    let weights = root.path().join("a.safetensors");
+    let loaded = CloudModel::load(&weights).unwrap();
+    let tensors = candle_core::safetensors::load(&weights, &candle_core::Device::Cpu).unwrap();
+    let side = &loaded.sidecar;
+    let (mut s1, mut s2) = (loaded.mlp.scratch(), full.mlp.scratch());
+    for row in data.features.chunks_exact(N_FEATURES).take(20) {
+        let x: Vec<f32> =
+            row.iter().enumerate().map(|(k, v)| (v - side.feature_mean[k]) / side.feature_std[k]).collect();
+        let mut h = candle_core::Tensor::from_vec(x, (1, N_FEATURES), &candle_core::Device::Cpu).unwrap();
+        for l in 0..3 {
+            let w = &tensors[&format!("layers.{l}.weight")];
+            let b = &tensors[&format!("layers.{l}.bias")];
+            h = h.matmul(&w.t().unwrap()).unwrap().broadcast_add(b).unwrap();
+            if l < 2 {
+                h = h.relu().unwrap();
+            }
+        }
+        let o: f32 = h.flatten_all().unwrap().to_vec1::<f32>().unwrap()[0];
+        let want = loaded.untransform(o);
+        let got = loaded.predict_features(row, &mut s1);
+        assert!((got - want).abs() <= 1e-4 * want.abs().max(1e-4), "{got} vs candle {want}");
+        assert_eq!(got, full.predict_features(row, &mut s2));
+    }
+    // Broken sidecars are refused, naming the problem.
+    let text = std::fs::read_to_string(root.path().join("a.json")).unwrap();
+    let bytes = std::fs::read(&weights).unwrap();
+    let err = |json: &str| CloudModel::from_bytes(&bytes, json, Path::new("bad.safetensors")).unwrap_err().to_string();
+    assert!(err(&text.replace("\"cos_theta\"", "\"angle\"")).contains("features"));
+    assert!(err(&text.replace("nimbus-cloud-model", "nimbus-global-model")).contains("format"));
+    assert!(err("{ not json").contains("bad.json"));
+    assert!(err(&text.replacen("\"hidden\": [\n    16", "\"hidden\": [\n    17", 1)).contains("shape"));
+
+    // Bound to a cloud and sun, the model answers the engine's trait: multiple
+    // scattering only, finite and non-negative, and the same as its own features.
+    let case = models::cloud::datagen::build_case(&s, 1).unwrap();
+    let medium = &case.scene.medium;
+    let sun = case.scene.sun.unwrap();
+    let bound = BoundCloudModel::new(Arc::new(loaded.clone()), medium, &sun, 24);
+    use engine::InScatterPredictor;
+    assert!(!bound.predicts_single_scattering());
+    let mut feat = vec![0.0; N_FEATURES];
+    let mut rng = engine::Rng::new(1, 2, 3);
+    for _ in 0..20 {
+        let (x, wo) = models::cloud::datagen::camera_path_query(medium, 1, None, &mut rng);
+        let v = bound.predict(medium, &sun, x, wo);
+        bound.field().features(medium.albedo(), medium.phase().mean_cosine(), x, wo, &mut feat);
+        assert!(v.is_finite() && v >= 0.0);
+        assert_eq!(v, loaded.predict_features(&feat, &mut s1));
+    }
+}
