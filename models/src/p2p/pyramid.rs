@@ -489,8 +489,12 @@ impl DensityPyramid {
             return LevelBlend { lo: last, hi: last, f: 0.0 };
         }
         let (a, b) = (self.stds[i - 1], self.stds[i]);
-        // Variance-matched blend: (1 - f) a^2 + f b^2 = std^2.
+        // Variance-matched blend: (1 - f) a^2 + f b^2 = std^2. A width that is a
+        // level's own reads that level alone (the same value, half the lookups).
         let f = ((std * std - a * a) / (b * b - a * a)).clamp(0.0, 1.0);
+        if f == 0.0 {
+            return LevelBlend { lo: i - 1, hi: i - 1, f: 0.0 };
+        }
         LevelBlend { lo: i - 1, hi: i, f }
     }
 
