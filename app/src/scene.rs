@@ -709,20 +709,8 @@ impl SceneFile {
         if self.render.integrator == "bdpt" {
             return self.bdpt_prediction(scene, cache);
         }
-        let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("prediction mode needs a sun".into()))?;
-        let key = PredictorKey::new(self, scene, max_nodes);
-        if let Some((k, bound)) = &cache.last {
-            if *k == key {
-                let predictor: Arc<dyn InScatterPredictor> = bound.clone();
-                return Ok(IntegratorSetup { integrator: self.integrator_with(Some(predictor))?, warning: None });
-            }
-        }
-        match self.load_model() {
-            Ok(model) => {
-                let bound = model.bind(&scene.medium, sun, max_nodes);
-                cache.last = Some((key, bound.clone()));
-                Ok(IntegratorSetup { integrator: self.integrator_with(Some(bound))?, warning: None })
-            }
+        match self.bound_model(scene, max_nodes, cache)? {
+            Ok(bound) => Ok(IntegratorSetup { integrator: self.integrator_with(Some(bound))?, warning: None }),
             Err(e) => {
                 let mut reference = self.clone();
                 reference.render.mode = "reference".into();
@@ -732,6 +720,29 @@ impl SceneFile {
                 })
             }
         }
+    }
+
+    /// The model of prediction at bounce k bound to `scene`'s cloud and sun (fields of
+    /// at most `max_nodes` per axis), from `cache` when it holds this binding, else
+    /// loaded, bound and left there; the inner error is a model that cannot be loaded.
+    fn bound_model(
+        &self,
+        scene: &Scene,
+        max_nodes: u32,
+        cache: &mut PredictorCache,
+    ) -> Result<Result<Arc<dyn InScatterPredictor>, ModelError>, SceneError> {
+        let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("prediction needs a sun".into()))?;
+        let key = PredictorKey::new(self, scene, max_nodes);
+        if let Some((k, bound)) = &cache.last {
+            if *k == key {
+                return Ok(Ok(bound.clone()));
+            }
+        }
+        Ok(self.load_model().map(|model| {
+            let bound = model.bind(&scene.medium, sun, max_nodes);
+            cache.last = Some((key, bound.clone()));
+            bound
+        }))
     }
 }
 
@@ -772,19 +783,16 @@ impl SceneFile {
         let multiple = if self.render.preview == "octaves" {
             self.octaves()
         } else {
-            let mut predicting = self.clone();
-            predicting.render.mode = "predict".into();
-            let setup = predicting.integrator_cached(scene, max_nodes, cache)?;
-            match setup.integrator.predictor() {
-                Some(predictor) => MultipleScattering::Lattice(Arc::new(Preview::learned_lattice(
+            match self.bound_model(scene, max_nodes, cache)? {
+                Ok(predictor) => MultipleScattering::Lattice(Arc::new(Preview::learned_lattice(
                     scene,
                     &field,
                     predictor.as_ref(),
                     scene.camera.position(),
                     self.render.preview_nodes,
                 ))),
-                None => {
-                    warning = setup.warning.map(|w| format!("{w}; the preview uses the octave approximation"));
+                Err(e) => {
+                    warning = Some(format!("cannot use the model ({e}); the preview uses the octave approximation"));
                     self.octaves()
                 }
             }

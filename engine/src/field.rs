@@ -82,7 +82,7 @@ pub fn optical_depth_sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing:
                 // Upstream value: bilinear in slice s_up at (i + shift_b, j + shift_c).
                 let (ub, uc) = (i as f32 + shift_b, j as f32 + shift_c);
                 if ub >= 0.0 && uc >= 0.0 && ub <= mb && uc <= mc {
-                    let (ib, ic) = ((ub.floor() as u32).min(n[b] - 2), (uc.floor() as u32).min(n[c] - 2));
+                    let (ib, ic) = ((ub as u32).min(n[b] - 2), (uc as u32).min(n[c] - 2));
                     let (fb, fc) = (ub - ib as f32, uc - ic as f32);
                     let at = |db: u32, dc: u32| {
                         let mut q = [0u32; 3];
@@ -270,7 +270,8 @@ impl std::fmt::Debug for SunTransmittance {
 #[inline]
 fn trilinear(d: &[f32], n: UVec3, q: Vec3) -> f32 {
     let q = q.clamp(Vec3::ZERO, (n - UVec3::ONE).as_vec3());
-    let i0 = q.floor().as_uvec3().min(n - UVec3::splat(2));
+    // q is clamped to >= 0, so truncation is floor (and no libm call per lookup).
+    let i0 = q.as_uvec3().min(n - UVec3::splat(2));
     let f = q - i0.as_vec3();
     let (sx, sy) = (1usize, n.x as usize);
     let sz = sy * n.y as usize;

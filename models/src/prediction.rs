@@ -58,17 +58,17 @@ impl PredictionModel {
 
     /// A model file (.safetensors with its .json sidecar), of either kind.
     pub fn load(path: &Path) -> Result<Self, ModelError> {
-        let json = path.with_extension("json");
-        let text =
-            std::fs::read_to_string(&json).map_err(|e| ModelError::File { path: json.clone(), why: e.to_string() })?;
-        let format = serde_json::from_str::<serde_json::Value>(&text)
-            .ok()
-            .and_then(|v| v.get("format").and_then(|f| f.as_str()).map(str::to_owned));
-        if format.as_deref() == Some(crate::cloud::model::MODEL_FORMAT) {
-            Ok(PredictionModel::Cloud(Arc::new(CloudModel::load(path)?)))
-        } else {
-            Ok(PredictionModel::Global(Arc::new(GlobalModel::load(path)?)))
+        #[derive(serde::Deserialize)]
+        struct Tag {
+            format: String,
         }
+        let (bytes, text) = crate::global::model::read_model_files(path)?;
+        let format = serde_json::from_str::<Tag>(&text).map(|t| t.format).unwrap_or_default();
+        Ok(if format == crate::cloud::model::MODEL_FORMAT {
+            PredictionModel::Cloud(Arc::new(CloudModel::from_bytes(&bytes, &text, path)?))
+        } else {
+            PredictionModel::Global(Arc::new(GlobalModel::from_bytes(&bytes, &text, path)?))
+        })
     }
 
     /// `path` if given, else the shipped model of `kind`.
@@ -76,13 +76,6 @@ impl PredictionModel {
         match path {
             Some(p) => Self::load(p),
             None => Self::shipped(kind),
-        }
-    }
-
-    pub fn kind(&self) -> PredictorKind {
-        match self {
-            PredictionModel::Cloud(_) => PredictorKind::Cloud,
-            PredictionModel::Global(_) => PredictorKind::Global,
         }
     }
 

@@ -168,7 +168,6 @@ pub fn render(args: RenderArgs) -> Result<()> {
             anyhow::bail!("--predictor {p:?}: choose {}", models::prediction::PredictorKind::NAMES);
         }
         file.render.predictor = p.clone();
-        file.load_model().context("--predictor")?;
     }
     if let Some(m) = &args.p2p_model {
         file.render.p2p_model = Some(std::path::absolute(m)?.display().to_string());

@@ -933,12 +933,16 @@ impl NimbusApp {
                         );
                     }
                     None => {
+                        let noise = if p.noise.is_finite() {
+                            format!("{:.1} %", 100.0 * p.noise)
+                        } else {
+                            "not known yet".to_string()
+                        };
                         ui.label(format!(
-                            "{} spp   {:.1} s   {:.2} M samples/s   noise {:.1} %{}",
+                            "{} spp   {:.1} s   {:.2} M samples/s   noise {noise}{}",
                             p.film.spp(),
                             p.render_secs,
                             p.samples_per_sec / 1e6,
-                            100.0 * p.noise,
                             if p.coarse { "   (coarse cloud while dragging)" } else { "" }
                         ));
                     }

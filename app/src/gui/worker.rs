@@ -39,7 +39,8 @@ pub struct Published {
     pub render_secs: f64,
     /// Camera samples per second over this render.
     pub samples_per_sec: f64,
-    /// Relative standard error of the full image (mean over lit pixels).
+    /// Relative standard error of the full image (mean over lit pixels); infinite
+    /// below 2 spp, where it is not known.
     pub noise: f64,
     pub coarse: bool,
     /// The integrator mode the film was rendered in (prediction falls back to path
@@ -157,8 +158,16 @@ pub fn spawn(
         .expect("cannot start the render worker")
 }
 
+/// The relative noise of `film`'s full image; infinite below two samples per pixel,
+/// where the variance is not known yet (and would read as 0, handing the view over to
+/// a one-sample image).
 fn relative_noise(film: &Film) -> f64 {
-    film.relative_noise(Buffer::Full)
+    if film.spp() < 2 { f64::INFINITY } else { film.relative_noise(Buffer::Full) }
+}
+
+/// The relative noise of `r`'s film, read in place (no copy of the buffers).
+fn film_noise(r: &Renderer) -> f64 {
+    relative_noise(&r.film_handle().read().unwrap_or_else(|e| e.into_inner()))
 }
 
 fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Mailbox>>, wake: impl Fn()) {
@@ -288,7 +297,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                     continue;
                 }
                 st.passes += 1;
-                let under = (j.main.spp() > 0).then(|| relative_noise(&j.main.snapshot()));
+                let under = Some(film_noise(&j.main)).filter(|n| n.is_finite());
                 publish_preview(&mailbox, j.generation, &st.renderer, st.which, under, j.start, j.coarse);
                 wake();
             }
@@ -314,26 +323,29 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                 continue;
             }
         }
-        let film = Arc::new(j.main.snapshot());
-        let secs = j.start.elapsed().as_secs_f64();
+        let noise = film_noise(&j.main);
         if let Some(st) = &j.standing {
-            let noise = relative_noise(&film);
             if noise > HANDOFF_NOISE {
-                // The preview stays on screen; say how far the render under it is.
+                // The preview stays on screen; once it is no longer refined, say how
+                // far the render under it is.
                 if st.passes >= PREVIEW_PASSES {
-                    publish_preview(&mailbox, j.generation, &st.renderer, st.which, Some(noise), j.start, j.coarse);
+                    if let Some(p) = mailbox.lock().unwrap().latest.as_mut().filter(|p| p.generation == j.generation) {
+                        p.standing_in = p.standing_in.map(|(which, _)| (which, Some(noise)));
+                    }
                     wake();
                 }
                 continue;
             }
             j.standing = None;
         }
+        let film = Arc::new(j.main.snapshot());
+        let secs = j.start.elapsed().as_secs_f64();
         // Both renders' camera samples in compare mode.
         let passes = film.spp() as f64 * if j.reference.is_some() { 2.0 } else { 1.0 };
         let published = Published {
             generation: j.generation,
             samples_per_sec: passes * film.pixel_count() as f64 / secs.max(1e-9),
-            noise: relative_noise(&film),
+            noise,
             render_secs: secs,
             film,
             coarse: j.coarse,

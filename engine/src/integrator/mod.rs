@@ -200,6 +200,7 @@ impl Integrator {
                     return Err(IntegratorError::NoPredictor);
                 }
                 self.transport = None;
+                self.preview = None;
             }
             Technique::Preview => {
                 if self.preview.is_none() {

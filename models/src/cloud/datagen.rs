@@ -5,7 +5,8 @@
 //! radiance there by path tracing in the grid; and the stencil features of
 //! [`super::features`].
 //!
-//! One chunk is one cloud (a "case"): chunk c's cloud, sun and medium are a pure
+//! One chunk is one cloud (a "case", made once per chunk by
+//! [`chunks::generate_by_chunk`]): chunk c's cloud, sun and medium are a pure
 //! function of (seed, c), and point i's query and ground truth of (seed, i), so the
 //! data are the same bytes for any thread or shard count. Files, resume, shards and
 //! merge are those of [`crate::dataset`].
@@ -25,8 +26,8 @@ use glam::Vec3;
 use modeler::CloudParams;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
 
 /// Presets kept out of every training set: the held-out clouds the model is judged on
 /// (with the random held-out clouds of [`held_out_cloud`]).
@@ -181,6 +182,8 @@ pub struct Case {
     pub name: String,
     pub scene: Scene,
     pub field: CloudField,
+    /// Path tracing from the query points.
+    pub integrator: Integrator,
 }
 
 fn log_lerp(r: [f32; 2], u: f32) -> f32 {
@@ -205,7 +208,8 @@ pub fn build_case(spec: &CloudSpec, c: u64) -> Result<Case, DatagenError> {
     let sun = Sun::new(-to_sun, Vec3::ONE, 0.0).expect("a unit direction");
     let camera = Camera::new(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO, Vec3::Y, 30.0, 1, 1).expect("valid camera");
     let field = CloudField::build(&medium, &sun, spec.field_nodes);
-    Ok(Case { name, scene: Scene { medium, sun: Some(sun), sky: Sky::default(), camera }, field })
+    let integrator = Integrator::new(RenderSettings::default(), None).expect("path tracing");
+    Ok(Case { name, scene: Scene { medium, sun: Some(sun), sky: Sky::default(), camera }, field, integrator })
 }
 
 /// A query like the renderer's: a camera ray from a random view toward the cloud,
@@ -272,7 +276,7 @@ pub fn generate_point(spec: &CloudSpec, case: &Case, index: u64) -> (Vec<f32>, u
         None => None,
     };
     let (x, wo) = camera_path_query(&case.scene.medium, vertex, view, &mut rng);
-    let integrator = Integrator::new(RenderSettings::default(), None).expect("path tracing");
+    let integrator = &case.integrator;
     let (mut sum, mut sq, mut first) = (0.0f64, 0.0f64, 0.0f64);
     for s in 0..spec.samples {
         let v = integrator.multiple_scattered_radiance(&case.scene, x, wo, &mut rng).x as f64;
@@ -291,40 +295,6 @@ pub fn generate_point(spec: &CloudSpec, case: &Case, index: u64) -> (Vec<f32>, u
     case.field.features(m.albedo(), m.phase().mean_cosine(), x, wo, &mut row);
     row.extend_from_slice(&[mean as f32, std_error as f32, n as f32, first as f32, vertex as f32]);
     (row, spec.samples)
-}
-
-/// The cases in use: built when a chunk's first point needs one, dropped when its last
-/// point is done (a case is a pure function of its index, so one built twice is the
-/// same).
-struct Cases {
-    slots: Vec<Mutex<Option<Arc<Case>>>>,
-    left: Vec<AtomicU64>,
-}
-
-impl Cases {
-    fn new(spec: &CloudSpec) -> Self {
-        let n = spec.n_chunks() as usize;
-        Cases {
-            slots: (0..n).map(|_| Mutex::new(None)).collect(),
-            left: (0..n as u64).map(|c| AtomicU64::new(spec.chunk_len(c))).collect(),
-        }
-    }
-
-    fn get(&self, spec: &CloudSpec, c: u64) -> Result<Arc<Case>, DatagenError> {
-        let mut slot = self.slots[c as usize].lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(case) = &*slot {
-            return Ok(case.clone());
-        }
-        let case = Arc::new(build_case(spec, c)?);
-        *slot = Some(case.clone());
-        Ok(case)
-    }
-
-    fn done(&self, c: u64) {
-        if self.left[c as usize].fetch_sub(1, Ordering::AcqRel) == 1 {
-            *self.slots[c as usize].lock().unwrap_or_else(|e| e.into_inner()) = None;
-        }
-    }
 }
 
 /// The cloud data set.
@@ -375,11 +345,7 @@ pub fn generate(
     cancel: &AtomicBool,
 ) -> Result<CloudManifest, DatagenError> {
     spec.validate()?;
-    let failure: Mutex<Option<DatagenError>> = Mutex::new(None);
-    let cases = Cases::new(spec);
-    // A case that cannot be built stops the run (as a cancel does, so its chunk is
-    // never written) and its error is returned.
-    let result = chunks::generate(
+    chunks::generate_by_chunk(
         spec,
         shard,
         dir,
@@ -387,24 +353,9 @@ pub fn generate(
         progress,
         cancel,
         || Ok(()),
-        |_, i| {
-            let c = i / spec.points_per_cloud;
-            let out = match cases.get(spec, c) {
-                Ok(case) => generate_point(spec, &case, i),
-                Err(e) => {
-                    *failure.lock().unwrap_or_else(|e| e.into_inner()) = Some(e);
-                    cancel.store(true, Ordering::Relaxed);
-                    (vec![0.0; N_FEATURES + 5], 0)
-                }
-            };
-            cases.done(c);
-            out
-        },
-    );
-    if let Some(e) = failure.into_inner().unwrap_or_else(|e| e.into_inner()) {
-        return Err(e);
-    }
-    result
+        |_, c| build_case(spec, c),
+        |_, case, i| generate_point(spec, case, i),
+    )
 }
 
 /// A data set loaded for training: rows, targets and which cloud each row comes from.
@@ -434,7 +385,19 @@ impl CloudDataset {
             }
             Ok(data)
         };
-        Ok(CloudDataset { features: read("features.npy", N_FEATURES)?, targets: read("targets.npy", 5)?, manifest })
+        let (features, targets) = (read("features.npy", N_FEATURES)?, read("targets.npy", 5)?);
+        let rows = manifest.counts.points as usize;
+        if features.len() != rows * N_FEATURES || targets.len() != rows * 5 {
+            return Err(DatagenError::File {
+                path: dir.to_owned(),
+                why: format!(
+                    "features.npy has {} rows and targets.npy {}, the manifest {rows}",
+                    features.len() / N_FEATURES,
+                    targets.len() / 5
+                ),
+            });
+        }
+        Ok(CloudDataset { features, targets, manifest })
     }
 
     pub fn len(&self) -> usize {

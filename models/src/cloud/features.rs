@@ -112,16 +112,6 @@ impl CloudField {
         self.pyramid.bytes() + self.sun.memory_bytes()
     }
 
-    /// The sun field (single scattering can read it too).
-    pub fn sun_transmittance(&self) -> &SunTransmittance {
-        &self.sun
-    }
-
-    /// Level spacings h_l (world units).
-    pub fn spacings(&self) -> &[f32; LEVELS] {
-        &self.h
-    }
-
     /// The stencil frame at a query: (u, v, w) with w toward the sun and `omega` in the
     /// u-w plane (u along omega's part across w; any u when omega is parallel to w).
     #[inline]

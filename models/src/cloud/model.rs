@@ -142,7 +142,7 @@ impl CloudModel {
     /// L_ms from the network output (clamped at 0; 0 for a non-finite output).
     #[inline]
     pub fn untransform(&self, o: f32) -> f32 {
-        let v = ((o * self.sidecar.target_std + self.sidecar.target_mean).exp() - 1.0) / (4.0 * std::f32::consts::PI);
+        let v = (o * self.sidecar.target_std + self.sidecar.target_mean).exp_m1() / (4.0 * std::f32::consts::PI);
         if v.is_finite() { v.max(0.0) } else { 0.0 }
     }
 

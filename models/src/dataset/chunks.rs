@@ -59,13 +59,40 @@ pub fn generate<S: DataSpec, T: Sync>(
     prepare: impl FnOnce() -> Result<T, DatagenError>,
     point: impl Fn(&T, u64) -> (Vec<f32>, u64) + Sync,
 ) -> Result<Manifest<S>, DatagenError> {
+    generate_by_chunk(spec, shard, dir, code_version, progress, cancel, prepare, |_, _| Ok(()), |t, _, i| point(t, i))
+}
+
+/// [`generate`] with state per chunk: `chunk(&shared, c)` makes what chunk c's points
+/// share (a cloud, say) before they run, and is dropped with the chunk; an error
+/// stops the run before the chunk is written and is returned.
+#[allow(clippy::too_many_arguments)]
+pub fn generate_by_chunk<S: DataSpec, T: Sync, C: Sync>(
+    spec: &S,
+    shard: Shard,
+    dir: &Path,
+    code_version: &str,
+    progress: &(dyn Fn(u64) + Sync),
+    cancel: &AtomicBool,
+    prepare: impl FnOnce() -> Result<T, DatagenError>,
+    chunk: impl Fn(&T, u64) -> Result<C, DatagenError> + Sync,
+    point: impl Fn(&T, &C, u64) -> (Vec<f32>, u64) + Sync,
+) -> Result<Manifest<S>, DatagenError> {
     let started = std::time::Instant::now();
     let mut manifest = Manifest::open(dir, spec, shard, code_version)?;
     if manifest.complete {
         return Ok(manifest);
     }
     let shared = prepare()?;
-    let owned = make_chunks(&mut manifest, dir, shard, started, progress, cancel, |i| point(&shared, i))?;
+    let owned = make_chunks(
+        &mut manifest,
+        dir,
+        shard,
+        started,
+        progress,
+        cancel,
+        |c| chunk(&shared, c),
+        |state: &C, i| point(&shared, state, i),
+    )?;
     if shard == Shard::ALL {
         return merge(&[dir.to_owned()], dir);
     }
@@ -77,14 +104,16 @@ pub fn generate<S: DataSpec, T: Sync>(
 /// Makes this shard's missing chunks (see [`write_chunks`]), reporting the points done
 /// so far (chunks on disk included) to `progress`, and books the run in the manifest:
 /// seconds, path samples, chunks. Returns the shard's point count, or `Cancelled`.
-fn make_chunks<S: DataSpec>(
+#[allow(clippy::too_many_arguments)]
+fn make_chunks<S: DataSpec, C: Sync>(
     manifest: &mut Manifest<S>,
     dir: &Path,
     shard: Shard,
     started: std::time::Instant,
     progress: &(dyn Fn(u64) + Sync),
     cancel: &AtomicBool,
-    point: impl Fn(u64) -> (Vec<f32>, u64) + Sync,
+    chunk: impl Fn(u64) -> Result<C, DatagenError> + Sync,
+    point: impl Fn(&C, u64) -> (Vec<f32>, u64) + Sync,
 ) -> Result<u64, DatagenError> {
     let spec = manifest.settings.clone();
     let chunks: Vec<u64> = (0..spec.n_chunks()).filter(|&c| shard.owns(c)).collect();
@@ -102,8 +131,8 @@ fn make_chunks<S: DataSpec>(
     let done = AtomicU64::new(owned - todo.iter().map(|&c| spec.chunk_len(c)).sum::<u64>());
     progress(done.load(Ordering::Relaxed));
     let cols = spec.n_features() + 5;
-    let (finished, samples) = write_chunks(dir, &todo, &spec, cols, cancel, |i| {
-        let out = point(i);
+    let (finished, samples) = write_chunks(dir, &todo, &spec, cols, cancel, chunk, |state, i| {
+        let out = point(state, i);
         progress(done.fetch_add(1, Ordering::Relaxed) + 1);
         out
     })?;
@@ -123,26 +152,35 @@ fn make_chunks<S: DataSpec>(
 /// gives data point i's rows (`cols` values each) and its path samples; each chunk is
 /// written atomically once all its points are done. Stops between points once
 /// `cancel` is set. Returns (chunks written, path samples of the points made).
-fn write_chunks<S: DataSpec>(
+#[allow(clippy::too_many_arguments)]
+fn write_chunks<S: DataSpec, C: Sync>(
     dir: &Path,
     todo: &[u64],
     spec: &S,
     cols: usize,
     cancel: &AtomicBool,
-    point: impl Fn(u64) -> (Vec<f32>, u64) + Sync,
+    chunk: impl Fn(u64) -> Result<C, DatagenError> + Sync,
+    point: impl Fn(&C, u64) -> (Vec<f32>, u64) + Sync,
 ) -> Result<(usize, u64), DatagenError> {
     let samples = AtomicU64::new(0);
+    // A chunk whose state cannot be made stops the others too.
+    let failed = AtomicBool::new(false);
+    let stopped = || cancel.load(Ordering::Relaxed) || failed.load(Ordering::Relaxed);
     let results: Vec<Result<bool, DatagenError>> = todo
         .par_iter()
         .map(|&c| {
+            if stopped() {
+                return Ok(false);
+            }
+            let state = chunk(c).inspect_err(|_| failed.store(true, Ordering::Relaxed))?;
             let first = c * spec.chunk_size();
             let points: Option<Vec<Vec<f32>>> = (first..first + spec.chunk_len(c))
                 .into_par_iter()
                 .map(|i| {
-                    if cancel.load(Ordering::Relaxed) {
+                    if stopped() {
                         return None;
                     }
-                    let (rows, n) = point(i);
+                    let (rows, n) = point(&state, i);
                     samples.fetch_add(n, Ordering::Relaxed);
                     Some(rows)
                 })

@@ -294,10 +294,10 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
     if args.n == 0 {
         bail!("--n must be at least 1");
     }
-    let model = Arc::new(match &args.model {
-        Some(p) => CloudModel::load(p)?,
-        None => (*CloudModel::shipped()?).clone(),
-    });
+    let model = match &args.model {
+        Some(p) => Arc::new(CloudModel::load(p)?),
+        None => CloudModel::shipped()?,
+    };
     let params = modeler::preset("scene-a").context("scene-a preset")?;
     let grid = Arc::new(modeler::build_grid(&params, args.resolution)?);
     let medium = engine::Medium::new(grid, args.rho, 1.0, engine::PhaseFunction::HenyeyGreenstein { g: 0.85 })?;

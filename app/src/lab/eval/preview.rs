@@ -199,10 +199,7 @@ impl PreviewJob<'_> {
         let f = 4u32.min(self.reference.w).max(1);
         let (w, h) = (self.reference.w.div_ceil(f), self.reference.h.div_ceil(f));
         let cam = &self.scene.camera;
-        let small = Arc::new(Scene {
-            camera: engine::Camera::new(cam.position(), cam.target(), cam.up(), cam.fov_y_deg(), w, h)?,
-            ..(**self.scene).clone()
-        });
+        let small = Arc::new(Scene { camera: cam.with_resolution(w, h)?, ..(**self.scene).clone() });
         // The reference boxed down to the small image.
         let target: Vec<f64> = downscale(self.reference, f).0.iter().map(|p| p.iter().sum::<f64>() / 3.0).collect();
         let [n, a0, b0, c0] = default_octaves();
