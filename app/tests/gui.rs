@@ -17,7 +17,9 @@ fn harness() -> Harness<'static, NimbusApp> {
 /// A window and a copy of its default scene shrunk to `w` x `h` pixels and a `res`^3
 /// grid, for the test to change and set.
 fn small_scene(w: u32, h: u32, res: u32) -> (Harness<'static, NimbusApp>, app::scene::SceneFile) {
-    let harness = harness();
+    let mut harness = harness();
+    // At the scene's own size, not the viewport's.
+    harness.state_mut().set_viewport_scale(None);
     let mut s = harness.state().scene().clone();
     (s.camera.width, s.camera.height, s.grid.resolution) = (w, h, res);
     (harness, s)
@@ -35,8 +37,9 @@ fn step_until(h: &mut Harness<'static, NimbusApp>, what: &str, done: impl Fn(&Ni
 #[test]
 fn panels_edits_and_undo() {
     let mut h = harness();
+    h.state_mut().set_viewport_scale(None);
     h.run_steps(3);
-    for label in ["Cloud", "Medium", "Light", "Camera", "Render", "File", "Edit"] {
+    for label in ["Cloud", "Modeler", "Medium", "Light", "Camera", "Render", "Image", "File", "Edit"] {
         h.get_by_label(label);
     }
     assert_eq!(h.state().scene().medium.rho, 40.0);
@@ -155,22 +158,26 @@ fn drag(h: &mut Harness<'static, NimbusApp>, from: egui::Pos2, to: egui::Pos2, b
     h.run_steps(2);
 }
 
-/// Dragging the image with the secondary button moves the sun (right: azimuth up,
-/// up: elevation up) and the scene's light with it; a primary drag orbits the camera
-/// and leaves the sun alone.
+/// Dragging the image with the secondary button puts the sun where the pointer is:
+/// its marker lands under the pointer, the scene's light moves with it and the camera
+/// stays; a primary drag orbits the camera and leaves the sun alone. While the sun
+/// moves the cloud is not rebuilt coarse, and the status says nothing of a coarse cloud.
 #[test]
-fn dragging_the_viewport_moves_the_sun_or_the_camera() {
+fn the_sun_lands_where_the_pointer_is() {
     let mut h = harness();
-    h.run_steps(3);
+    step_until(&mut h, "no image", |a| a.rendered().is_some());
+    h.run_steps(2);
     let rect = h.state().viewport_rect();
     assert!(rect.width() > 100.0 && rect.height() > 100.0, "{rect:?}");
-    let (el0, az0) = h.state().sun_angles();
     let (sun0, cam0) = (h.state().scene().sun.direction, h.state().scene().camera.position);
     let c = rect.center();
-    drag(&mut h, c, c + egui::vec2(50.0, -40.0), egui::PointerButton::Secondary);
-    let (el1, az1) = h.state().sun_angles();
-    assert!(az1 != az0 && (az1 - az0).rem_euclid(360.0) < 180.0, "azimuth {az0} -> {az1}");
-    assert!(el1 > el0 || el0 >= 89.0, "elevation {el0} -> {el1}");
+    for to in [c + egui::vec2(60.0, -80.0), c + egui::vec2(-120.0, 30.0)] {
+        drag(&mut h, c, to, egui::PointerButton::Secondary);
+        let marker = h.state().sun_marker().expect("the sun is in the image");
+        assert!((marker - to).length() < 2.0, "the sun's marker is at {marker:?}, the pointer at {to:?}");
+        let status = h.state().status_line().unwrap_or_default();
+        assert!(!status.contains("48^3"), "a sun drag is not a coarse cloud: {status}");
+    }
     assert_ne!(h.state().scene().sun.direction, sun0, "the scene's sun did not move");
     assert_eq!(h.state().scene().camera.position, cam0, "the sun drag moved the camera");
 
@@ -178,6 +185,173 @@ fn dragging_the_viewport_moves_the_sun_or_the_camera() {
     drag(&mut h, c, c + egui::vec2(60.0, 0.0), egui::PointerButton::Primary);
     assert_ne!(h.state().scene().camera.position, cam0, "the orbit drag did not move the camera");
     assert_eq!(h.state().scene().sun.direction, sun1, "the orbit drag moved the sun");
+}
+
+/// The default view shows the cloud's form: the sun is neither overhead nor behind
+/// the camera, and the image is rendered at the viewport's size (scaled), not
+/// upscaled from a fixed one.
+#[test]
+fn the_default_view_is_lit_from_three_quarters_at_the_viewports_size() {
+    let mut h = harness();
+    let (el, _) = h.state().sun_angles();
+    assert!((20.0..=60.0).contains(&el), "sun elevation {el}");
+    step_until(&mut h, "no image", |a| a.rendered().is_some());
+    h.run_steps(2);
+    let (w, hh) = h.state().render_size();
+    let view = h.state().viewport_rect();
+    assert!(
+        (w as f32 - view.width() * 0.5).abs() <= 8.0 && (hh as f32 - view.height() * 0.5).abs() <= 8.0,
+        "{w} x {hh} for {view:?}"
+    );
+    step_until(&mut h, "the image is not at the viewport's size", |a| a.rendered_size() == Some(a.render_size()));
+}
+
+/// The modeler panel: "new cloud" makes the cloud a modeler cloud, a slider change
+/// rebuilds it (a new, different image), undo restores the parameters and then the
+/// built-in cloud; "new variation" changes the seed only.
+#[test]
+fn the_modeler_panel_rebuilds_the_cloud_and_undo_restores_it() {
+    let (mut h, s) = small_scene(32, 32, 32);
+    h.state_mut().set_scene(s);
+    h.run_steps(2);
+    h.get_by_label("new cloud").click();
+    h.run_steps(2);
+    let params = h.state().scene().grid.params.clone().expect("a modeler cloud");
+    assert_eq!(params, modeler::CloudParams::default());
+    step_until(&mut h, "no image of the modeler cloud", |a| a.rendered().is_some_and(|r| r.1 >= 2));
+    let (g0, _, mean0) = h.state().rendered().unwrap();
+    h.get_by_role_and_label(egui::accesskit::Role::Slider, "roots").set_value_accesskit(5.0);
+    h.run_steps(2);
+    assert_eq!(h.state().scene().grid.params.as_ref().unwrap().roots, 5);
+    step_until(&mut h, "the cloud was not rebuilt", |a| a.rendered().is_some_and(|r| r.0 > g0 && r.1 >= 2));
+    let (_, _, mean1) = h.state().rendered().unwrap();
+    assert!((mean1 - mean0).abs() > 0.05 * mean0, "five roots look like one: {mean0} vs {mean1}");
+    h.get_by_label("new variation").click();
+    h.run_steps(2);
+    let varied = h.state().scene().grid.params.clone().unwrap();
+    assert_ne!(varied.seed, params.seed);
+    assert_eq!(varied.roots, 5);
+    h.state_mut().request(Action::Undo);
+    h.run_steps(2);
+    assert_eq!(h.state().scene().grid.params.as_ref().unwrap().roots, 5);
+    assert_eq!(h.state().scene().grid.params.as_ref().unwrap().seed, params.seed);
+    h.state_mut().request(Action::Undo);
+    h.run_steps(2);
+    assert_eq!(h.state().scene().grid.params.as_ref().unwrap().roots, 1);
+    h.state_mut().request(Action::Undo);
+    h.run_steps(2);
+    assert_eq!(h.state().scene().grid.builtin.as_deref(), Some("cumulus"));
+    // Saving a preset lists it in the browser.
+    let tmp = tempfile::tempdir().unwrap();
+    h.state_mut().set_preset_dir(Some(tmp.path().to_path_buf()));
+    h.get_by_label("new cloud").click();
+    h.run_steps(1);
+    h.get_by_label("save as preset").focus();
+    h.get_by_label("save as preset").type_text("mine");
+    h.run_steps(1);
+    h.get_by_label("save").click();
+    h.run_steps(2);
+    assert!(tmp.path().join("mine.toml").is_file(), "the preset file was not written");
+    assert!(h.state().modeler().presets().iter().any(|p| p.name == "mine" && !p.builtin));
+}
+
+/// Without a desktop portal the window draws its own file dialog: saving the scene
+/// through it writes the file, opening through it reads it back, cancel closes it, and
+/// keyboard shortcuts wait while it is open.
+#[test]
+fn the_drawn_file_dialog_saves_and_opens() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (mut h, s) = small_scene(24, 24, 24);
+    h.state_mut().set_scene(s);
+    h.state_mut().set_native_dialogs(false);
+    h.state_mut().set_dialog_dir(tmp.path().to_path_buf());
+    h.state_mut().request(Action::SaveScene);
+    // (An area is laid out invisibly in its first frame.)
+    h.run_steps(4);
+    assert_eq!(h.state().dialog(), Some(app::gui::Pick::Write(app::gui::Target::Scene)));
+    assert_eq!(h.get_by_label("file name").value().as_deref(), Some("scene.toml"));
+    h.get_by_label("Save").click();
+    h.run_steps(2);
+    assert!(h.state().dialog().is_none(), "the dialog stayed open");
+    let saved = tmp.path().join("scene.toml");
+    assert!(saved.is_file(), "no scene written");
+    let (text, is_error) = h.state().message().cloned().expect("a message");
+    assert!(!is_error && text.contains("scene.toml"), "{text}");
+
+    let mut s = h.state().scene().clone();
+    s.medium.rho = 7.0;
+    h.state_mut().set_scene(s);
+    h.state_mut().request(Action::OpenScene);
+    h.run_steps(4);
+    h.get_by_label("scene.toml").click();
+    h.run_steps(1);
+    h.get_by_label("Open").click();
+    h.run_steps(2);
+    assert_eq!(h.state().scene().medium.rho, 40.0, "the saved scene was not opened");
+
+    h.state_mut().request(Action::ExportVdb);
+    h.run_steps(4);
+    assert!(h.state().dialog().is_some());
+    h.get_by_label("Cancel").click();
+    h.run_steps(2);
+    assert!(h.state().dialog().is_none());
+    assert!(!tmp.path().join("cloud.vdb").exists());
+}
+
+/// "Save render" writes EXR and PNG into the renders folder without a dialog; a render
+/// target stops the render, says done and shows the progress; the status bar names
+/// the mode and, in compare mode, both sides' samples and noise.
+#[test]
+fn save_render_target_and_status() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (mut h, mut s) = small_scene(24, 24, 24);
+    s.render.mode = "reference".into();
+    h.state_mut().set_scene(s);
+    h.state_mut().set_target(app::gui::worker::RenderTarget::Spp(6));
+    step_until(&mut h, "the render did not finish", |a| a.status_line().is_some_and(|t| t.contains("done")));
+    let spp = h.state().rendered().unwrap().1;
+    assert_eq!(spp, 6, "stopped at {spp} spp");
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    h.run_steps(2);
+    assert_eq!(h.state().rendered().unwrap().1, 6, "the render went on after its target");
+    let status = h.state().status_line().unwrap();
+    assert!(status.starts_with("path tracing: 6 spp") && !status.contains("48^3"), "{status}");
+
+    h.state_mut().set_render_dir(Some(tmp.path().join("renders")));
+    h.state_mut().request(Action::SaveRender);
+    h.run_steps(1);
+    let (text, is_error) = h.state().message().cloned().expect("a message");
+    assert!(!is_error && text.contains(".exr"), "{text}");
+    let files: Vec<String> = std::fs::read_dir(tmp.path().join("renders"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(files.len(), 2, "{files:?}");
+    assert!(files.iter().any(|f| f.ends_with(".exr")) && files.iter().any(|f| f.ends_with(".png")), "{files:?}");
+    h.state_mut().set_render_dir(None);
+    h.state_mut().request(Action::SaveRender);
+    h.run_steps(1);
+    let (text, is_error) = h.state().message().cloned().unwrap();
+    assert!(is_error && text.contains("no folder"), "{text}");
+
+    // Compare mode: both sides in the status bar.
+    h.state_mut().set_target(app::gui::worker::RenderTarget::Unlimited);
+    let mut s = h.state().scene().clone();
+    s.render.mode = "predict".into();
+    h.state_mut().set_scene(s);
+    h.state_mut().set_compare(true);
+    step_until(&mut h, "no comparison in the status bar", |a| {
+        a.status_line().is_some_and(|t| t.starts_with("prediction:") && t.contains("reference:"))
+    });
+}
+
+/// The bias readout says whether the number is within noise.
+#[test]
+fn bias_readout_judges_significance() {
+    assert!(app::gui::bias_verdict(0.03, 0.025).contains("within noise"));
+    let t = app::gui::bias_verdict(0.10, 0.02);
+    assert!(t.contains("significant") && t.contains("9.8 %"), "{t}");
+    assert!(app::gui::bias_verdict(f64::NAN, 0.01).contains("not known"));
 }
 
 /// Opening files by path (what File > Open recent does): a scene is opened and

@@ -136,6 +136,25 @@ impl Film {
         if den > 0.0 { (num / den).sqrt() } else { 0.0 }
     }
 
+    /// [`Film::relative_noise`] over the cloud's pixels only: those that received
+    /// scattered light (orders >= 1). The background, the sky seen unobstructed, has
+    /// no variance and would dilute the figure (with a bright sky an image whose cloud
+    /// is grainy reads as a few percent). Zero before any light is scattered.
+    pub fn cloud_noise(&self, b: Buffer) -> f64 {
+        let (mean, var) = (self.mean(b), self.variance_of_mean(b));
+        let (low, high) = (&self.layers[Buffer::Low.index()].sum, &self.layers[Buffer::High.index()].sum);
+        let (mut num, mut den) = (0.0f64, 0.0f64);
+        for i in 0..mean.len() {
+            let scattered: f64 = (0..3).map(|c| low[i][c] + high[i][c]).sum();
+            if scattered > 0.0 {
+                let l = (mean[i][0] + mean[i][1] + mean[i][2]) as f64 / 3.0;
+                num += (var[i][0] + var[i][1] + var[i][2]) as f64 / 3.0;
+                den += l * l;
+            }
+        }
+        if den > 0.0 { (num / den).sqrt() } else { 0.0 }
+    }
+
     /// Per-pixel, per-channel variance of the pixel ESTIMATE (the sample variance
     /// divided by spp): the "variance" of docs/conventions.md's TTUV.
     pub fn variance_of_mean(&self, buffer: Buffer) -> Vec<[f32; 3]> {
@@ -185,5 +204,22 @@ mod tests {
         assert!((f.variance_of_mean(Buffer::Full)[0][0] - 2.25).abs() < 1e-6);
         assert!(m.iter().flatten().all(|x| x.is_finite()));
         assert!((f.average(Buffer::Full) - 0.75).abs() < 1e-12);
+    }
+
+    /// A bright, noiseless background pixel counts in the image's noise but not in the
+    /// cloud's: the cloud's is that of the scattering pixel alone.
+    #[test]
+    fn cloud_noise_leaves_the_background_out() {
+        let mut f = Film::new(2, 1);
+        let sky = PathSample { direct: Vec3::splat(4.0), ..Default::default() };
+        for v in [1.0f32, 3.0, 1.0, 3.0] {
+            f.add_pass(&[sky, PathSample { direct: Vec3::ZERO, low: Vec3::splat(v), high: Vec3::ZERO }]);
+        }
+        // Cloud pixel: mean 2, sample variance 4/3, variance of the mean 1/3.
+        let cloud = ((1.0f64 / 3.0) / 4.0).sqrt();
+        assert!((f.cloud_noise(Buffer::Full) - cloud).abs() < 1e-6, "{}", f.cloud_noise(Buffer::Full));
+        let all = ((1.0f64 / 3.0) / (4.0 + 16.0)).sqrt();
+        assert!((f.relative_noise(Buffer::Full) - all).abs() < 1e-6);
+        assert_eq!(Film::new(1, 1).cloud_noise(Buffer::Full), 0.0);
     }
 }

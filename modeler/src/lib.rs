@@ -15,5 +15,5 @@ pub mod vdb;
 mod build;
 
 pub use build::{CloudModel, build_grid};
-pub use params::{CloudParams, ParamError};
+pub use params::{CloudParams, Group, PARAMS, ParamError, ParamSpec};
 pub use presets::{PRESET_NAMES, preset};

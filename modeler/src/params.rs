@@ -98,14 +98,6 @@ impl Default for CloudParams {
     }
 }
 
-fn check_f(name: &'static str, v: f32, lo: f32, hi: f32, range: &'static str) -> Result<(), ParamError> {
-    if v.is_finite() && v >= lo && v <= hi { Ok(()) } else { Err(ParamError { name, value: v.to_string(), range }) }
-}
-
-fn check_u(name: &'static str, v: u32, lo: u32, hi: u32, range: &'static str) -> Result<(), ParamError> {
-    if v >= lo && v <= hi { Ok(()) } else { Err(ParamError { name, value: v.to_string(), range }) }
-}
-
 impl CloudParams {
     /// A random cloud: every parameter drawn over its range from `seed` (uniformly,
     /// frequencies log-uniformly), with the hierarchy kept to at most 3 levels of at
@@ -146,32 +138,288 @@ impl CloudParams {
         }
     }
 
+    /// Checks every parameter against its range in [`PARAMS`].
     pub fn validate(&self) -> Result<(), ParamError> {
-        check_u("roots", self.roots, 1, 8, "1 ..= 8")?;
-        check_f("root_radius", self.root_radius, 0.05, 0.5, "0.05 ..= 0.5")?;
-        check_f("root_spread", self.root_spread, 0.0, 1.0, "0 ..= 1")?;
-        check_u("levels", self.levels, 0, 4, "0 ..= 4")?;
-        check_u("children", self.children, 0, 10, "0 ..= 10")?;
-        check_f("radius_ratio", self.radius_ratio, 0.2, 0.9, "0.2 ..= 0.9")?;
-        check_f("upward_bias", self.upward_bias, 0.0, 2.0, "0 ..= 2")?;
-        check_f("outward_bias", self.outward_bias, 0.0, 2.0, "0 ..= 2")?;
-        check_f("flatten_base", self.flatten_base, 0.0, 1.0, "0 ..= 1")?;
-        check_f("blend", self.blend, 0.0, 0.2, "0 ..= 0.2")?;
-        check_f("falloff", self.falloff, 0.002, 0.3, "0.002 ..= 0.3")?;
-        check_f("displacement", self.displacement, 0.0, 0.2, "0 ..= 0.2")?;
-        check_f("frequency", self.frequency, 0.5, 64.0, "0.5 ..= 64")?;
-        check_u("octaves", self.octaves, 1, 8, "1 ..= 8")?;
-        check_f("lacunarity", self.lacunarity, 1.5, 3.0, "1.5 ..= 3")?;
-        check_f("gain", self.gain, 0.2, 0.8, "0.2 ..= 0.8")?;
-        check_f("worley", self.worley, 0.0, 1.0, "0 ..= 1")?;
-        check_f("advection", self.advection, 0.0, 0.2, "0 ..= 0.2")?;
-        check_f("advection_frequency", self.advection_frequency, 0.5, 32.0, "0.5 ..= 32")?;
-        check_f("interior", self.interior, 0.0, 1.0, "0 ..= 1")?;
-        check_f("interior_frequency", self.interior_frequency, 0.5, 64.0, "0.5 ..= 64")?;
-        check_f("margin", self.margin, 0.0, 0.2, "0 ..= 0.2")?;
+        for spec in &PARAMS {
+            let v = self.get(spec.name).expect("every spec names a field");
+            if !(v.is_finite() && v >= spec.lo && v <= spec.hi) {
+                let value = if spec.integer { (v as u32).to_string() } else { v.to_string() };
+                return Err(ParamError { name: spec.name, value, range: spec.range });
+            }
+        }
         Ok(())
     }
+
+    /// The parameter `name` (a field of [`PARAMS`]) as a number; None for other names.
+    pub fn get(&self, name: &str) -> Option<f32> {
+        let mut copy = self.clone();
+        copy.field(name).map(|f| match f {
+            Field::Real(v) => *v,
+            Field::Count(v) => *v as f32,
+        })
+    }
+
+    /// Sets the parameter `name` (counts are rounded to the nearest integer, negative
+    /// values to 0); false for a name that is not in [`PARAMS`]. Does not check the
+    /// range: [`CloudParams::validate`] does.
+    pub fn set(&mut self, name: &str, value: f32) -> bool {
+        match self.field(name) {
+            Some(Field::Real(v)) => *v = value,
+            Some(Field::Count(v)) => *v = value.round().max(0.0) as u32,
+            None => return false,
+        }
+        true
+    }
+
+    fn field(&mut self, name: &str) -> Option<Field<'_>> {
+        use Field::{Count, Real};
+        Some(match name {
+            "roots" => Count(&mut self.roots),
+            "root_radius" => Real(&mut self.root_radius),
+            "root_spread" => Real(&mut self.root_spread),
+            "levels" => Count(&mut self.levels),
+            "children" => Count(&mut self.children),
+            "radius_ratio" => Real(&mut self.radius_ratio),
+            "upward_bias" => Real(&mut self.upward_bias),
+            "outward_bias" => Real(&mut self.outward_bias),
+            "flatten_base" => Real(&mut self.flatten_base),
+            "blend" => Real(&mut self.blend),
+            "falloff" => Real(&mut self.falloff),
+            "displacement" => Real(&mut self.displacement),
+            "frequency" => Real(&mut self.frequency),
+            "octaves" => Count(&mut self.octaves),
+            "lacunarity" => Real(&mut self.lacunarity),
+            "gain" => Real(&mut self.gain),
+            "worley" => Real(&mut self.worley),
+            "advection" => Real(&mut self.advection),
+            "advection_frequency" => Real(&mut self.advection_frequency),
+            "interior" => Real(&mut self.interior),
+            "interior_frequency" => Real(&mut self.interior_frequency),
+            "margin" => Real(&mut self.margin),
+            _ => return None,
+        })
+    }
 }
+
+enum Field<'a> {
+    Real(&'a mut f32),
+    Count(&'a mut u32),
+}
+
+/// The groups the parameters are shown in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Group {
+    /// The sphere hierarchy: how many spheres, how big, where.
+    Hierarchy,
+    /// The union of the spheres: base, blending, the soft edge.
+    Shape,
+    /// Noise displacement of the boundary.
+    Noise,
+    /// The domain warp that pulls the surface into wisps.
+    Advection,
+    /// Density variation inside the cloud, and the border around it.
+    Interior,
+}
+
+impl Group {
+    pub const ALL: [Group; 5] = [Group::Hierarchy, Group::Shape, Group::Noise, Group::Advection, Group::Interior];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Group::Hierarchy => "hierarchy",
+            Group::Shape => "shape",
+            Group::Noise => "noise",
+            Group::Advection => "advection",
+            Group::Interior => "interior",
+        }
+    }
+}
+
+/// One parameter of [`CloudParams`] (all but the seed): its field name, group, valid
+/// range (the one [`CloudParams::validate`] enforces), how a slider should move over
+/// it, its unit and a one-line description.
+#[derive(Clone, Copy, Debug)]
+pub struct ParamSpec {
+    pub name: &'static str,
+    pub group: Group,
+    pub lo: f32,
+    pub hi: f32,
+    /// The range as error messages print it.
+    pub range: &'static str,
+    /// A count (roots, levels, children, octaves).
+    pub integer: bool,
+    /// A slider over a logarithmic scale (frequencies, the falloff width).
+    pub log: bool,
+    /// The unit, "" for a plain number. Lengths are in box widths: the cloud is fitted
+    /// into the box [-0.5, 0.5]^3.
+    pub unit: &'static str,
+    pub doc: &'static str,
+}
+
+const fn spec(
+    name: &'static str,
+    group: Group,
+    (lo, hi, range): (f32, f32, &'static str),
+    (integer, log): (bool, bool),
+    unit: &'static str,
+    doc: &'static str,
+) -> ParamSpec {
+    ParamSpec { name, group, lo, hi, range, integer, log, unit, doc }
+}
+
+const REAL: (bool, bool) = (false, false);
+const COUNT: (bool, bool) = (true, false);
+const LOG: (bool, bool) = (false, true);
+const BOX: &str = "box widths";
+const CYCLES: &str = "cycles per box width";
+
+/// Every parameter but the seed, in display order.
+pub const PARAMS: [ParamSpec; 22] = {
+    use Group::*;
+    [
+        spec("roots", Hierarchy, (1.0, 8.0, "1 ..= 8"), COUNT, "", "root spheres the cloud grows from"),
+        spec(
+            "root_radius",
+            Hierarchy,
+            (0.05, 0.5, "0.05 ..= 0.5"),
+            REAL,
+            BOX,
+            "root sphere radius, before the cloud is fitted to the box",
+        ),
+        spec(
+            "root_spread",
+            Hierarchy,
+            (0.0, 1.0, "0 ..= 1"),
+            REAL,
+            BOX,
+            "horizontal spread of the root centres: 0 stacks them, 1 lines them up wide",
+        ),
+        spec(
+            "levels",
+            Hierarchy,
+            (0.0, 4.0, "0 ..= 4"),
+            COUNT,
+            "",
+            "generations of child spheres below the roots (each multiplies the sphere count)",
+        ),
+        spec("children", Hierarchy, (0.0, 10.0, "0 ..= 10"), COUNT, "", "child spheres on the surface of each sphere"),
+        spec(
+            "radius_ratio",
+            Hierarchy,
+            (0.2, 0.9, "0.2 ..= 0.9"),
+            REAL,
+            "",
+            "child radius over parent radius: small gives cauliflower detail, large gives lobes",
+        ),
+        spec(
+            "upward_bias",
+            Hierarchy,
+            (0.0, 2.0, "0 ..= 2"),
+            REAL,
+            "",
+            "how much children prefer the upper side: towering cumulus at 2",
+        ),
+        spec(
+            "outward_bias",
+            Hierarchy,
+            (0.0, 2.0, "0 ..= 2"),
+            REAL,
+            "",
+            "how much children point away from the cloud's centre: spread-out clouds at 2",
+        ),
+        spec(
+            "flatten_base",
+            Shape,
+            (0.0, 1.0, "0 ..= 1"),
+            REAL,
+            "",
+            "flat bottom: 0 none, 1 cut at the roots' centres, as a cumulus base",
+        ),
+        spec(
+            "blend",
+            Shape,
+            (0.0, 0.2, "0 ..= 0.2"),
+            REAL,
+            BOX,
+            "smooth-union width where spheres meet: 0 leaves creases, larger fills them",
+        ),
+        spec(
+            "falloff",
+            Shape,
+            (0.002, 0.3, "0.002 ..= 0.3"),
+            LOG,
+            BOX,
+            "depth over which density rises from 0 at the surface to full: hard edges when small, soft when large",
+        ),
+        spec("displacement", Noise, (0.0, 0.2, "0 ..= 0.2"), REAL, BOX, "how far noise pushes the surface in and out"),
+        spec(
+            "frequency",
+            Noise,
+            (0.5, 64.0, "0.5 ..= 64"),
+            LOG,
+            CYCLES,
+            "size of the largest noise bumps: low is big billows, high is fine grain",
+        ),
+        spec("octaves", Noise, (1.0, 8.0, "1 ..= 8"), COUNT, "", "layers of finer noise added on top of the largest"),
+        spec(
+            "lacunarity",
+            Noise,
+            (1.5, 3.0, "1.5 ..= 3"),
+            REAL,
+            "",
+            "frequency ratio from one noise layer to the next",
+        ),
+        spec(
+            "gain",
+            Noise,
+            (0.2, 0.8, "0.2 ..= 0.8"),
+            REAL,
+            "",
+            "amplitude ratio from one noise layer to the next: high keeps fine detail strong",
+        ),
+        spec(
+            "worley",
+            Noise,
+            (0.0, 1.0, "0 ..= 1"),
+            REAL,
+            "",
+            "mix of cellular (billowy, cauliflower) noise into the smooth Perlin noise",
+        ),
+        spec(
+            "advection",
+            Advection,
+            (0.0, 0.2, "0 ..= 0.2"),
+            REAL,
+            BOX,
+            "domain warp strength: drags the surface into wisps, 0 for none",
+        ),
+        spec("advection_frequency", Advection, (0.5, 32.0, "0.5 ..= 32"), LOG, CYCLES, "size of the warp's swirls"),
+        spec(
+            "interior",
+            Interior,
+            (0.0, 1.0, "0 ..= 1"),
+            REAL,
+            "",
+            "density variation inside: 0 homogeneous, 1 fully modulated by noise",
+        ),
+        spec(
+            "interior_frequency",
+            Interior,
+            (0.5, 64.0, "0.5 ..= 64"),
+            LOG,
+            CYCLES,
+            "size of the interior's density blobs",
+        ),
+        spec(
+            "margin",
+            Interior,
+            (0.0, 0.2, "0 ..= 0.2"),
+            REAL,
+            BOX,
+            "empty border kept around the cloud inside its box",
+        ),
+    ]
+};
 
 #[cfg(test)]
 mod tests {
@@ -199,5 +447,42 @@ mod tests {
         let (lo, hi) = span(&|p| p.levels as f32);
         assert!(lo == 0.0 && hi == 3.0, "levels {lo}..{hi}");
         assert_ne!(all[0], all[1]);
+    }
+
+    /// The table names every field but the seed, each once; get and set round-trip,
+    /// and validate refuses a value just outside each range, naming the parameter.
+    #[test]
+    fn the_parameter_table_covers_every_field() {
+        let names: std::collections::BTreeSet<&str> = PARAMS.iter().map(|s| s.name).collect();
+        assert_eq!(names.len(), PARAMS.len(), "a parameter is listed twice");
+        let fields = serde_json::to_value(CloudParams::default()).unwrap();
+        let fields: std::collections::BTreeSet<&str> =
+            fields.as_object().unwrap().keys().map(|k| k.as_str()).filter(|k| *k != "seed").collect();
+        assert_eq!(names, fields);
+        let d = CloudParams::default();
+        for spec in &PARAMS {
+            let v = d.get(spec.name).unwrap();
+            assert!(v >= spec.lo && v <= spec.hi, "{}: default {v} outside {}", spec.name, spec.range);
+            let mut p = d.clone();
+            let mid = if spec.integer { ((spec.lo + spec.hi) / 2.0).round() } else { (spec.lo + spec.hi) / 2.0 };
+            assert!(p.set(spec.name, mid));
+            assert_eq!(p.get(spec.name), Some(mid), "{}", spec.name);
+            p.validate().unwrap();
+            let step = if spec.integer { 1.0 } else { (spec.hi - spec.lo) * 1e-3 };
+            for bad in [spec.hi + step, spec.lo - step, f32::NAN] {
+                if spec.integer && bad < 0.0 {
+                    continue; // a negative count cannot be stored
+                }
+                let mut p = d.clone();
+                p.set(spec.name, bad);
+                if spec.integer && bad.is_nan() {
+                    continue; // NaN rounds to 0, which may be in range
+                }
+                let e = p.validate().expect_err(spec.name);
+                assert_eq!(e.name, spec.name);
+                assert_eq!(e.range, spec.range);
+            }
+        }
+        assert!(!d.clone().set("seed", 2.0) && d.get("nonsense").is_none());
     }
 }

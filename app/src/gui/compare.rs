@@ -162,10 +162,11 @@ impl CompareView {
         ui.heading("Compare");
         match self.bias {
             Some((rel, floor)) => {
-                ui.label(format!("relative bias {:.2} %", 100.0 * rel)).on_hover_text(format!(
-                    "16x box downscale, docs/conventions.md; noise alone would show about {:.2} %",
-                    100.0 * floor
-                ));
+                ui.label(super::bias_verdict(rel, floor)).on_hover_text(
+                    "mean |prediction - reference| over 16 x 16 pixel blocks, divided by the reference's mean \
+                     (docs/conventions.md); noise in either image alone shows a few percent, so the number is \
+                     significant only well above that floor, which falls as both renders accumulate",
+                );
             }
             None => {
                 ui.label("relative bias: waiting for samples");

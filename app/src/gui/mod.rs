@@ -4,6 +4,8 @@
 //! latest finished pass through one texture.
 
 pub mod compare;
+pub mod files;
+pub mod modeler_panel;
 pub mod worker;
 
 use crate::output::ToneMap;
@@ -12,16 +14,60 @@ use compare::{CompareView, Layout};
 use eframe::egui;
 use engine::Buffer;
 use glam::Vec3;
-use worker::WorkerHandle;
+use worker::{RenderTarget, WorkerHandle};
 
-/// The default scene a fresh start shows: the built-in cumulus, lit from above.
+/// The default sun of a fresh start, (elevation, azimuth) in degrees: a three-quarter
+/// light from above the camera's right shoulder, so the cloud's form shows in light
+/// and shadow (a sun overhead gives a flat grey blob from the side).
+pub const DEFAULT_SUN: (f32, f32) = (35.0, 50.0);
+
+/// The default scene a fresh start shows: the built-in cumulus under a three-quarter
+/// sun, seen from slightly above.
 pub fn default_scene() -> SceneFile {
     let mut s =
         SceneFile::from_toml_str(include_str!("../../../assets/scenes/cumulus.toml"), "assets/scenes/cumulus.toml")
             .expect("the bundled scene parses");
     s.grid.resolution = 96;
     s.k = 2;
+    s.sun.direction = (-sun_vector(DEFAULT_SUN.0, DEFAULT_SUN.1)).to_array();
+    let d = s.camera.distance;
+    let pitch = 10f32.to_radians();
+    s.camera.preset = None;
+    s.camera.position = Some([0.0, d * pitch.sin(), d * pitch.cos()]);
     s
+}
+
+/// The unit vector toward a sun at `elevation_deg` above the horizon and
+/// `azimuth_deg` around the vertical (0 = +z, 90 = +x).
+pub fn sun_vector(elevation_deg: f32, azimuth_deg: f32) -> Vec3 {
+    let (el, az) = (elevation_deg.to_radians(), azimuth_deg.to_radians());
+    Vec3::new(el.cos() * az.sin(), el.sin(), el.cos() * az.cos())
+}
+
+/// (elevation, azimuth) in degrees of the direction `to_sun`, azimuth in [0, 360).
+pub fn sun_angles_of(to_sun: Vec3) -> (f32, f32) {
+    let v = to_sun.normalize_or(Vec3::Y);
+    (v.y.clamp(-1.0, 1.0).asin().to_degrees(), v.x.atan2(v.z).to_degrees().rem_euclid(360.0))
+}
+
+/// What the comparison's relative bias means against its noise floor (what noise
+/// alone would show): within noise below 1.5 times the floor, else significant, with
+/// the part noise does not explain, sqrt(bias^2 - floor^2).
+pub fn bias_verdict(rel: f64, floor: f64) -> String {
+    if !(rel.is_finite() && floor.is_finite()) {
+        return "relative bias: not known yet".into();
+    }
+    if rel <= 1.5 * floor {
+        format!("relative bias {:.1} %: within noise (noise alone shows {:.1} %)", 100.0 * rel, 100.0 * floor)
+    } else {
+        let excess = (rel * rel - floor * floor).max(0.0).sqrt();
+        format!(
+            "relative bias significant: about {:.1} % (measured {:.1} %, noise {:.1} %)",
+            100.0 * excess,
+            100.0 * rel,
+            100.0 * floor
+        )
+    }
 }
 
 /// Orbit camera state: angles around the target, in degrees, and distance.
@@ -66,8 +112,13 @@ pub enum Action {
     OpenVdb,
     /// Open a scene (.toml) or a VDB cloud (.vdb) without a dialog (recent files, tests).
     OpenPath(std::path::PathBuf),
-    /// Pick another global model (.safetensors with its .json sidecar) for prediction.
+    /// Pick another model (.safetensors with its .json sidecar) for prediction.
     LoadModel,
+    /// Switch prediction to this model file without a dialog.
+    LoadModelFrom(std::path::PathBuf),
+    /// Write the latest image as EXR (every buffer) and PNG into the renders folder,
+    /// named by the time, without a dialog.
+    SaveRender,
     SaveScene,
     ExportExr,
     ExportPng,
@@ -91,6 +142,171 @@ pub enum Target {
     Vdb,
     /// A folder: cloud.vol and scene.xml.
     Mitsuba,
+}
+
+/// What a file dialog is for; its answer becomes an [`Action`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Pick {
+    OpenScene,
+    OpenVdb,
+    LoadModel,
+    Write(Target),
+}
+
+impl Pick {
+    fn request(self) -> files::Request {
+        use files::{Kind, Request};
+        match self {
+            Pick::OpenScene => {
+                Request::new(Kind::Open, "Open a scene or a cloud", "Nimbus scene or OpenVDB", &["toml", "vdb"], "")
+            }
+            Pick::OpenVdb => Request::new(Kind::Open, "Open a VDB cloud", "OpenVDB", &["vdb"], ""),
+            Pick::LoadModel => {
+                Request::new(Kind::Open, "Load a model of prediction at bounce k", "Nimbus model", &["safetensors"], "")
+            }
+            Pick::Write(Target::Scene) => {
+                Request::new(Kind::Save, "Save the scene", "Nimbus scene", &["toml"], "scene.toml")
+            }
+            Pick::Write(Target::Exr) => {
+                Request::new(Kind::Save, "Export the image, every buffer", "OpenEXR", &["exr"], "nimbus.exr")
+            }
+            Pick::Write(Target::Png) => {
+                Request::new(Kind::Save, "Export the image as shown", "PNG", &["png"], "nimbus.png")
+            }
+            Pick::Write(Target::Vdb) => Request::new(Kind::Save, "Export the cloud", "OpenVDB", &["vdb"], "cloud.vdb"),
+            Pick::Write(Target::Mitsuba) => {
+                Request::new(Kind::Folder, "Export a Mitsuba 3 scene into a folder", "", &[], "")
+            }
+        }
+    }
+
+    fn finish(self, path: std::path::PathBuf) -> Action {
+        match self {
+            Pick::OpenScene | Pick::OpenVdb => Action::OpenPath(path),
+            Pick::LoadModel => Action::LoadModelFrom(path),
+            Pick::Write(t) => Action::WriteTo(t, path),
+        }
+    }
+}
+
+/// Output sizes offered for export and the scene file: (name, width, height).
+pub const OUTPUT_SIZES: [(&str, u32, u32); 7] = [
+    ("256 x 256", 256, 256),
+    ("512 x 512", 512, 512),
+    ("1024 x 1024", 1024, 1024),
+    ("1280 x 720 (HD)", 1280, 720),
+    ("1920 x 1080 (full HD)", 1920, 1080),
+    ("1080 x 1350 (portrait 4:5)", 1080, 1350),
+    ("2048 x 1024 (2:1)", 2048, 1024),
+];
+
+/// The image size rendered for a viewport of `size` physical pixels at `scale`:
+/// multiples of 8 (so small resizes do not restart the render), 16 ..= 2048.
+pub fn viewport_render_size(size: egui::Vec2, scale: f32) -> (u32, u32) {
+    let px = |v: f32| (((v * scale) / 8.0).round() as u32 * 8).clamp(16, 2048);
+    (px(size.x), px(size.y))
+}
+
+/// A radiance as (colour with its largest channel 1, intensity).
+fn colour_and_intensity(c: crate::scene::Rgb) -> ([f32; 3], f32) {
+    let v = c.to_vec3();
+    let i = v.max_element();
+    if i > 0.0 { ((v / i).to_array(), i) } else { ([1.0; 3], 0.0) }
+}
+
+/// The radiance of `colour` at `intensity` (grey when the colour is white).
+fn radiance_of(colour: [f32; 3], intensity: f32) -> crate::scene::Rgb {
+    if colour == [1.0; 3] {
+        crate::scene::Rgb::Grey(intensity)
+    } else {
+        crate::scene::Rgb::Rgb(colour.map(|c| c * intensity))
+    }
+}
+
+/// A file name from the wall clock, UTC: `nimbus-YYYYMMDD-HHMMSS`.
+fn timestamp_name() -> String {
+    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+    let (days, rem) = ((secs / 86_400) as i64, secs % 86_400);
+    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!("nimbus-{y:04}{m:02}{d:02}-{:02}{:02}{:02}", rem / 3600, rem / 60 % 60, rem % 60)
+}
+
+/// A relative noise for the status bar ("not known yet" below 2 spp).
+fn noise_text(n: f64) -> String {
+    if n.is_finite() { format!("{:.1} %", 100.0 * n) } else { "not known yet".into() }
+}
+
+/// The status bar's text for a published image: the preview standing in and how far
+/// the render under it is, or the render's samples, time, speed and noise (both
+/// sides in compare mode), and the coarse cloud only when the cloud is coarse.
+pub fn status_text(p: &worker::Published) -> String {
+    let coarse = if p.coarse { "   (cloud at 48^3 while the slider moves)" } else { "" };
+    if let Some((which, under)) = p.standing_in {
+        let render = match under {
+            Some(n) => format!("render under it at {} noise", noise_text(n)),
+            None => "render starting".into(),
+        };
+        return format!(
+            "instant preview ({which}), {} passes   {:.2} s   {render}, shown below {:.0} %{coarse}",
+            p.film.spp(),
+            p.render_secs,
+            100.0 * worker::HANDOFF_NOISE
+        );
+    }
+    let what = match p.mode {
+        _ if p.is_preview => "instant preview",
+        engine::Mode::Reference => "path tracing",
+        engine::Mode::Predict { .. } => "prediction",
+    };
+    let done = if p.done { "   done" } else { "" };
+    match (&p.reference, p.reference_noise) {
+        (Some(r), Some(rn)) => format!(
+            "{what}: {} spp, noise {}   reference: {} spp, noise {}   {:.1} s   {:.2} M samples/s{done}{coarse}",
+            p.film.spp(),
+            noise_text(p.noise),
+            r.spp(),
+            noise_text(rn),
+            p.render_secs,
+            p.samples_per_sec / 1e6
+        ),
+        _ => format!(
+            "{what}: {} spp   {:.1} s   {:.2} M samples/s   noise {}{done}{coarse}",
+            p.film.spp(),
+            p.render_secs,
+            p.samples_per_sec / 1e6,
+            noise_text(p.noise)
+        ),
+    }
+}
+
+/// What the shape box shows for `g`.
+fn grid_label(g: &crate::scene::GridDesc) -> String {
+    match (&g.builtin, &g.preset, &g.file, &g.params) {
+        (Some(b), _, _, _) => format!("builtin: {b}"),
+        (_, Some(p), _, _) => p.clone(),
+        (_, _, Some(f), _) => {
+            format!("file: {}", std::path::Path::new(f).file_name().map(|n| n.to_string_lossy()).unwrap_or_default())
+        }
+        (_, _, _, Some(p)) => format!("modeler cloud (seed {})", p.seed),
+        _ => "custom parameters".into(),
+    }
+}
+
+/// Where "save render" writes: the user's pictures folder, else the current one.
+pub fn default_render_dir() -> std::path::PathBuf {
+    match std::env::var_os("HOME") {
+        Some(h) => std::path::Path::new(&h).join("Pictures").join("Nimbus"),
+        None => std::path::PathBuf::from("nimbus-renders"),
+    }
 }
 
 /// Parameter-change history for undo and redo.
@@ -147,8 +363,9 @@ pub struct NimbusApp {
     tone: ToneMap,
     view_buffer: Buffer,
     worker: WorkerHandle,
-    /// The last scene sent to the worker, whether coarse, whether in compare mode.
-    sent: Option<(SceneFile, bool, bool)>,
+    /// The last scene sent to the worker, whether its cloud was coarse, whether in
+    /// compare mode, whether the pointer was down.
+    sent: Option<(SceneFile, bool, bool, bool)>,
     /// Reference and prediction side by side, with the buffer panels.
     compare: bool,
     compare_view: CompareView,
@@ -162,6 +379,26 @@ pub struct NimbusApp {
     drag: ViewDrag,
     /// The viewport's area in the last frame.
     view_rect: egui::Rect,
+    /// Where the image was drawn in the last frame (single view).
+    image_rect: Option<egui::Rect>,
+    /// Physical pixels per point in the last frame.
+    pixels_per_point: f32,
+    modeler: modeler_panel::ModelerPanel,
+    /// The file dialog open now and what its answer is for.
+    dialog: Option<(Pick, files::Dialog)>,
+    /// Use the desktop's dialogs (cleared when the portal turns out not to answer).
+    native_dialogs: bool,
+    /// The folder the next dialog starts in.
+    dialog_dir: std::path::PathBuf,
+    /// Where "save render" writes (None: no folder; the action says so).
+    render_dir: Option<std::path::PathBuf>,
+    /// Render at the viewport's size times this (None: at the scene's output size).
+    viewport_scale: Option<f32>,
+    /// Keep the output size's aspect ratio when one side is edited.
+    aspect_lock: bool,
+    target: RenderTarget,
+    /// The target of the last render sent.
+    sent_target: RenderTarget,
 }
 
 impl NimbusApp {
@@ -199,6 +436,19 @@ impl NimbusApp {
             shown: None,
             drag: ViewDrag::Orbit,
             view_rect: egui::Rect::NOTHING,
+            image_rect: None,
+            pixels_per_point: 1.0,
+            // The user's presets and renders only for the real window (with storage);
+            // a window without storage (tests) touches no folder unless told to.
+            modeler: modeler_panel::ModelerPanel::new(storage.and_then(|_| modeler_panel::default_user_dir())),
+            dialog: None,
+            native_dialogs: true,
+            dialog_dir: std::env::current_dir().unwrap_or_default(),
+            render_dir: storage.map(|_| default_render_dir()),
+            viewport_scale: Some(0.5),
+            aspect_lock: true,
+            target: RenderTarget::Unlimited,
+            sent_target: RenderTarget::Unlimited,
         };
         app.set_scene(restored.unwrap_or_else(default_scene));
         app.history.record(&app.scene);
@@ -228,17 +478,100 @@ impl NimbusApp {
             }
         };
         let g = &scene.grid;
-        self.preset_name = match (&g.builtin, &g.preset, &g.file) {
-            (Some(b), _, _) => format!("builtin: {b}"),
-            (_, Some(p), _) => p.clone(),
-            (_, _, Some(f)) => format!(
-                "file: {}",
-                std::path::Path::new(f).file_name().map(|n| n.to_string_lossy()).unwrap_or_default()
-            ),
-            _ => "custom parameters".into(),
-        };
+        self.preset_name = grid_label(g);
         self.scene = scene;
         self.apply_camera();
+    }
+
+    /// Renders at the viewport's size times `scale` (Some), or at the scene's output
+    /// size (None).
+    pub fn set_viewport_scale(&mut self, scale: Option<f32>) {
+        self.viewport_scale = scale.map(|s| s.clamp(0.1, 1.0));
+    }
+
+    /// The size the window renders at now: the viewport's (scaled) or the output size.
+    pub fn render_size(&self) -> (u32, u32) {
+        match self.viewport_scale {
+            Some(scale) if self.view_rect.is_positive() => {
+                viewport_render_size(self.view_rect.size() * self.pixels_per_point, scale)
+            }
+            _ => (self.scene.camera.width, self.scene.camera.height),
+        }
+    }
+
+    /// When the render stops.
+    pub fn set_target(&mut self, target: RenderTarget) {
+        self.target = target;
+    }
+
+    /// Where "save render" writes.
+    pub fn set_render_dir(&mut self, dir: Option<std::path::PathBuf>) {
+        self.render_dir = dir;
+    }
+
+    /// Where the user's modeler presets are kept.
+    pub fn set_preset_dir(&mut self, dir: Option<std::path::PathBuf>) {
+        self.modeler.set_user_dir(dir);
+    }
+
+    /// The modeler panel (presets, thumbnails).
+    pub fn modeler(&self) -> &modeler_panel::ModelerPanel {
+        &self.modeler
+    }
+
+    /// Use the desktop's file dialogs (true) or always the window's own (false).
+    pub fn set_native_dialogs(&mut self, on: bool) {
+        self.native_dialogs = on;
+    }
+
+    /// What the open file dialog is for, if one is open.
+    pub fn dialog(&self) -> Option<Pick> {
+        self.dialog.as_ref().map(|(p, _)| *p)
+    }
+
+    /// The folder file dialogs start in.
+    pub fn set_dialog_dir(&mut self, dir: std::path::PathBuf) {
+        self.dialog_dir = dir;
+    }
+
+    /// Where the sun's marker is on screen, when the sun is inside the image.
+    pub fn sun_marker(&self) -> Option<egui::Pos2> {
+        let shown = self.image_rect?;
+        let (forward, right, up, tan_half) = self.camera_basis();
+        let to_sun = -Vec3::from_array(self.scene.sun.direction).normalize_or(Vec3::NEG_Y);
+        let depth = to_sun.dot(forward);
+        if depth <= 1e-3 {
+            return None;
+        }
+        let aspect = shown.width() / shown.height().max(1.0);
+        let sx = to_sun.dot(right) / depth / (tan_half * aspect);
+        let sy = to_sun.dot(up) / depth / tan_half;
+        (sx.abs() <= 1.0 && sy.abs() <= 1.0)
+            .then(|| shown.center() + egui::vec2(sx * shown.width() / 2.0, -sy * shown.height() / 2.0))
+    }
+
+    /// The camera's forward, right and up vectors and tan(fov_y / 2).
+    fn camera_basis(&self) -> (Vec3, Vec3, Vec3, f32) {
+        let cam = &self.scene.camera;
+        let target = Vec3::from_array(cam.target);
+        let pos = Vec3::from_array(cam.position.unwrap_or([0.0, 0.0, 3.0]));
+        let forward = (target - pos).normalize_or(Vec3::NEG_Z);
+        let right = forward.cross(Vec3::from_array(cam.up)).normalize_or(Vec3::X);
+        let up = right.cross(forward);
+        (forward, right, up, (cam.fov_y_deg.to_radians() / 2.0).tan())
+    }
+
+    /// Puts the sun where the pointer at `p` looks (its marker lands under it).
+    fn point_sun_at(&mut self, p: egui::Pos2) {
+        let Some(shown) = self.image_rect else { return };
+        let (forward, right, up, tan_half) = self.camera_basis();
+        let aspect = shown.width() / shown.height().max(1.0);
+        let sx = (p.x - shown.center().x) / (shown.width() / 2.0);
+        let sy = -(p.y - shown.center().y) / (shown.height() / 2.0);
+        let dir = forward + right * (sx * tan_half * aspect) + up * (sy * tan_half);
+        let (el, az) = sun_angles_of(dir);
+        (self.sun_elevation_deg, self.sun_azimuth_deg) = (el.clamp(-89.0, 89.0), az);
+        self.apply_sun();
     }
 
     /// Queues an action (menu items, shortcuts, tests).
@@ -286,6 +619,11 @@ impl NimbusApp {
         self.message.as_ref()
     }
 
+    /// The size of the latest published image.
+    pub fn rendered_size(&self) -> Option<(u32, u32)> {
+        self.worker.mailbox.lock().unwrap().latest.as_ref().map(|p| (p.film.width(), p.film.height()))
+    }
+
     /// The latest finished pass the worker published: (generation, spp, mean of the
     /// full image).
     pub fn rendered(&self) -> Option<(u64, u32, f64)> {
@@ -309,6 +647,7 @@ impl NimbusApp {
                     ("Export image (PNG)…", Action::ExportPng),
                     ("Export cloud (VDB)…", Action::ExportVdb),
                     ("Export Mitsuba scene…", Action::ExportMitsuba),
+                    ("Save render (EXR + PNG to the renders folder)  Ctrl+Shift+E", Action::SaveRender),
                 ];
                 for (label, action) in items {
                     if ui.button(label).clicked() {
@@ -328,9 +667,15 @@ impl NimbusApp {
                     }
                 });
                 ui.separator();
-                if ui.button("Load global model…").clicked() {
+                if ui.button("Load model…").clicked() {
                     self.actions.push(Action::LoadModel);
                     ui.close();
+                }
+                ui.checkbox(&mut self.native_dialogs, "use the desktop's file dialogs").on_hover_text(
+                    "through the XDG desktop portal when one runs; otherwise, or when off, the window draws its own",
+                );
+                if let Some(dir) = &self.render_dir {
+                    ui.weak(format!("renders folder: {}", dir.display()));
                 }
                 ui.separator();
                 if ui.button("Quit").clicked() {
@@ -356,6 +701,7 @@ impl NimbusApp {
         use egui::{Key, KeyboardShortcut, Modifiers};
         let table = [
             (KeyboardShortcut::new(Modifiers::COMMAND | Modifiers::SHIFT, Key::Z), Action::Redo),
+            (KeyboardShortcut::new(Modifiers::COMMAND | Modifiers::SHIFT, Key::E), Action::SaveRender),
             (KeyboardShortcut::new(Modifiers::COMMAND, Key::Y), Action::Redo),
             (KeyboardShortcut::new(Modifiers::COMMAND, Key::Z), Action::Undo),
             (KeyboardShortcut::new(Modifiers::COMMAND, Key::O), Action::OpenScene),
@@ -382,7 +728,6 @@ impl NimbusApp {
 
     fn apply(&mut self, action: Action) -> anyhow::Result<Option<String>> {
         use anyhow::Context as _;
-        let file_dialog = || rfd::FileDialog::new();
         match action {
             Action::Undo => {
                 if let Some(s) = self.history.undo() {
@@ -404,58 +749,71 @@ impl NimbusApp {
                 let is_vdb = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("vdb"));
                 if is_vdb { self.open_vdb(path) } else { self.open_scene(path) }
             }
-            Action::LoadModel => {
-                let Some(path) = file_dialog().add_filter("Nimbus global model", &["safetensors"]).pick_file() else {
-                    return Ok(None);
-                };
-                self.load_model(path)
-            }
-            Action::OpenScene => {
-                let Some(path) = file_dialog().add_filter("Nimbus scene", &["toml"]).pick_file() else {
-                    return Ok(None);
-                };
-                self.open_scene(path)
-            }
-            Action::OpenVdb => {
-                let Some(path) = file_dialog().add_filter("OpenVDB", &["vdb"]).pick_file() else { return Ok(None) };
-                self.open_vdb(path)
-            }
-            Action::SaveScene => {
-                let Some(path) =
-                    file_dialog().add_filter("Nimbus scene", &["toml"]).set_file_name("scene.toml").save_file()
-                else {
-                    return Ok(None);
-                };
-                self.write_to(Target::Scene, &path)
-            }
+            Action::LoadModel => self.ask(Pick::LoadModel),
+            Action::LoadModelFrom(path) => self.load_model(path),
+            Action::OpenScene => self.ask(Pick::OpenScene),
+            Action::OpenVdb => self.ask(Pick::OpenVdb),
+            Action::SaveScene => self.ask(Pick::Write(Target::Scene)),
             Action::ExportExr | Action::ExportPng => {
-                let (target, ext, name) = if action == Action::ExportExr {
-                    (Target::Exr, "exr", "OpenEXR")
-                } else {
-                    (Target::Png, "png", "PNG")
-                };
                 // Refuse before asking for a file when there is nothing to write.
                 self.worker.mailbox.lock().unwrap().latest.as_ref().context("nothing rendered yet")?;
-                let Some(path) =
-                    file_dialog().add_filter(name, &[ext]).set_file_name(format!("nimbus.{ext}")).save_file()
-                else {
-                    return Ok(None);
-                };
-                self.write_to(target, &path)
+                self.ask(Pick::Write(if action == Action::ExportExr { Target::Exr } else { Target::Png }))
             }
-            Action::ExportVdb => {
-                let Some(path) = file_dialog().add_filter("OpenVDB", &["vdb"]).set_file_name("cloud.vdb").save_file()
-                else {
-                    return Ok(None);
-                };
-                self.write_to(Target::Vdb, &path)
-            }
-            Action::ExportMitsuba => {
-                let Some(dir) = file_dialog().pick_folder() else { return Ok(None) };
-                self.write_to(Target::Mitsuba, &dir)
-            }
+            Action::ExportVdb => self.ask(Pick::Write(Target::Vdb)),
+            Action::ExportMitsuba => self.ask(Pick::Write(Target::Mitsuba)),
+            Action::SaveRender => self.save_render(),
             Action::WriteTo(target, path) => self.write_to(target, &path),
         }
+    }
+
+    /// Opens a file dialog for `pick` (the desktop's when its portal answers, else the
+    /// window's own); its answer is applied as an action when it comes.
+    fn ask(&mut self, pick: Pick) -> anyhow::Result<Option<String>> {
+        if self.dialog.is_some() {
+            anyhow::bail!("a file dialog is already open");
+        }
+        let native = self.native_dialogs && files::portal_available();
+        self.dialog = Some((pick, files::Dialog::open(pick.request(), native, &self.dialog_dir)));
+        Ok(None)
+    }
+
+    /// Shows or polls the open file dialog; a chosen path becomes its action.
+    fn dialogs(&mut self, ctx: &egui::Context) {
+        let Some((pick, dialog)) = &mut self.dialog else { return };
+        let pick = *pick;
+        match dialog.show(ctx, &mut self.native_dialogs, &self.dialog_dir) {
+            files::Outcome::Pending => {}
+            files::Outcome::Cancelled => self.dialog = None,
+            files::Outcome::Picked(path) => {
+                let dir = if pick == Pick::Write(Target::Mitsuba) { Some(path.as_path()) } else { path.parent() };
+                if let Some(d) = dir.filter(|d| d.is_dir()) {
+                    self.dialog_dir = d.to_path_buf();
+                }
+                self.actions.push(pick.finish(path));
+                self.dialog = None;
+            }
+        }
+    }
+
+    /// Writes the latest image as EXR and PNG into the renders folder.
+    fn save_render(&mut self) -> anyhow::Result<Option<String>> {
+        use anyhow::Context as _;
+        let dir = self.render_dir.clone().context("no folder for renders")?;
+        self.worker.mailbox.lock().unwrap().latest.as_ref().context("nothing rendered yet")?;
+        std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        let stem = timestamp_name();
+        let mut name = stem.clone();
+        for n in 2.. {
+            if !dir.join(format!("{name}.exr")).exists() && !dir.join(format!("{name}.png")).exists() {
+                break;
+            }
+            name = format!("{stem}-{n}");
+        }
+        let (exr, png) = (dir.join(format!("{name}.exr")), dir.join(format!("{name}.png")));
+        self.write_to(Target::Exr, &exr)?;
+        self.write_to(Target::Png, &png)?;
+        let spp = self.rendered().map(|r| r.1).unwrap_or(0);
+        Ok(Some(format!("saved {} and {}.png ({spp} spp)", exr.display(), name)))
     }
 
     /// Writes the scene, the image or the cloud to `path` (a folder for Mitsuba).
@@ -481,7 +839,18 @@ impl NimbusApp {
                         self.exposure,
                     )?;
                 }
-                Ok(Some(format!("wrote {} ({} spp)", path.display(), film.spp())))
+                let (w, h) = (film.width(), film.height());
+                let cam = &self.scene.camera;
+                let size = if (w, h) != (cam.width, cam.height) {
+                    format!(
+                        "{w} x {h}, the viewport's size; turn off \"render at the viewport's size\" for the output \
+                         size {} x {}",
+                        cam.width, cam.height
+                    )
+                } else {
+                    format!("{w} x {h}")
+                };
+                Ok(Some(format!("wrote {} ({size}, {} spp)", path.display(), film.spp())))
             }
             Target::Vdb => {
                 let grid = self.scene.build_grid()?;
@@ -552,7 +921,7 @@ impl NimbusApp {
     /// Checks the model now (a bad file is reported here, naming what is wrong) and
     /// switches to prediction with it.
     fn load_model(&mut self, path: std::path::PathBuf) -> anyhow::Result<Option<String>> {
-        models::global::GlobalModel::load(&path)?;
+        models::prediction::PredictionModel::load(&path)?;
         self.scene.render.model = Some(path.display().to_string());
         self.scene.render.mode = "predict".into();
         Ok(Some(format!("predicting with {}", path.display())))
@@ -572,8 +941,15 @@ impl NimbusApp {
         self.scene.sun.direction = (-to_sun).to_array();
     }
 
+    fn grid_changed(&mut self) {
+        self.preset_name = grid_label(&self.scene.grid);
+    }
+
     fn controls(&mut self, ui: &mut egui::Ui) {
-        egui::ScrollArea::vertical().show(ui, |ui| {
+        // Sliders share the panel with their value and label: narrow enough that the
+        // label fits the panel's default width.
+        ui.spacing_mut().slider_width = 150.0;
+        egui::ScrollArea::vertical().auto_shrink([false, false]).show(ui, |ui| {
             ui.heading("Cloud");
             let mut sources: Vec<String> =
                 crate::cloud::Builtin::NAMES.iter().map(|n| format!("builtin: {n}")).collect();
@@ -591,44 +967,98 @@ impl NimbusApp {
                     }
                 }
             });
-            ui.add(egui::Slider::new(&mut self.scene.grid.resolution, 32..=256).text("resolution"));
+            ui.add(egui::Slider::new(&mut self.scene.grid.resolution, 32..=256).text("voxels per axis")).on_hover_text(
+                "the grid the cloud is built on: more voxels keep finer detail and cost memory and build time \
+                     (48 while a cloud slider is dragged)",
+            );
+            egui::CollapsingHeader::new("Modeler").default_open(true).show(ui, |ui| {
+                if self.modeler.ui(ui, &mut self.scene.grid) {
+                    self.grid_changed();
+                }
+            });
 
             ui.separator();
             ui.heading("Medium");
             let m = &mut self.scene.medium;
-            ui.add(egui::Slider::new(&mut m.rho, 0.5..=400.0).logarithmic(true).text("density rho"));
-            ui.add(egui::Slider::new(&mut m.albedo, 0.0..=1.0).text("albedo"));
-            egui::ComboBox::from_label("phase").selected_text(&m.phase).show_ui(ui, |ui| {
-                for p in ["hg", "isotropic", "rayleigh", "hazy", "murky"] {
-                    ui.selectable_value(&mut m.phase, p.to_string(), p);
+            ui.add(egui::Slider::new(&mut m.rho, 0.5..=400.0).logarithmic(true).text("density rho")).on_hover_text(
+                "extinction at full density, per box width: light travels 1/rho of the cloud's box between \
+                 collisions (rho 40: 1/40 of the box); higher is denser, brighter edges, darker core",
+            );
+            ui.add(egui::Slider::new(&mut m.albedo, 0.0..=1.0).text("albedo")).on_hover_text(
+                "the fraction of light scattered at each collision, the rest absorbed: 1 for water clouds, lower \
+                 for smoke",
+            );
+            egui::ComboBox::from_label("phase function").selected_text(&m.phase).show_ui(ui, |ui| {
+                for (p, tip) in [
+                    ("hg", "Henyey-Greenstein with asymmetry g (clouds: forward scattering, g about 0.85)"),
+                    ("isotropic", "scatters equally in every direction"),
+                    ("rayleigh", "molecules: a little more forward and backward than sideways"),
+                    ("hazy", "Mie, hazy atmosphere (Nishita et al.)"),
+                    ("murky", "Mie, murky atmosphere: strongly forward"),
+                ] {
+                    ui.selectable_value(&mut m.phase, p.to_string(), p).on_hover_text(tip);
                 }
             });
             if m.phase == "hg" {
-                ui.add(egui::Slider::new(&mut m.g, -0.95..=0.95).text("g"));
+                ui.add(egui::Slider::new(&mut m.g, -0.95..=0.95).text("anisotropy g")).on_hover_text(
+                    "mean cosine of the scattering angle: 0 scatters evenly, toward 1 keeps light going forward \
+                     (silver lining when backlit), negative sends it back",
+                );
             }
 
             ui.separator();
             ui.heading("Light");
-            let mut sun_changed =
-                ui.add(egui::Slider::new(&mut self.sun_elevation_deg, -89.0..=89.0).text("sun elevation")).changed();
-            sun_changed |=
-                ui.add(egui::Slider::new(&mut self.sun_azimuth_deg, 0.0..=360.0).text("sun azimuth")).changed();
+            let mut sun_changed = ui
+                .add(egui::Slider::new(&mut self.sun_elevation_deg, -89.0..=89.0).text("sun elevation").suffix("°"))
+                .on_hover_text("degrees above the horizon; 90 is straight overhead")
+                .changed();
+            sun_changed |= ui
+                .add(egui::Slider::new(&mut self.sun_azimuth_deg, 0.0..=360.0).text("sun azimuth").suffix("°"))
+                .on_hover_text("degrees around the vertical, 0 toward +z, 90 toward +x")
+                .changed();
+            sun_changed |= self.sky_dome(ui);
             if sun_changed {
                 self.apply_sun();
             }
-            let mut radiance = self.scene.sun.radiance.to_vec3().x;
-            if ui.add(egui::Slider::new(&mut radiance, 0.0..=10.0).text("sun radiance")).changed() {
-                self.scene.sun.radiance = crate::scene::Rgb::Grey(radiance);
+            let (mut colour, mut intensity) = colour_and_intensity(self.scene.sun.radiance);
+            let mut changed = false;
+            ui.horizontal(|ui| {
+                changed |= egui::color_picker::color_edit_button_rgb(ui, &mut colour)
+                    .on_hover_text("the sun's colour")
+                    .changed();
+                changed |= ui
+                    .add(egui::Slider::new(&mut intensity, 0.0..=10.0).text("sun irradiance"))
+                    .on_hover_text(
+                        "irradiance on a surface facing the sun (linear, scene units); exposure scales the image \
+                         instead",
+                    )
+                    .changed();
+            });
+            if changed {
+                self.scene.sun.radiance = radiance_of(colour, intensity);
             }
-            ui.add(egui::Slider::new(&mut self.scene.sun.angular_radius_deg, 0.0..=10.0).text("sun size (deg)"));
-            let mut sky = self.scene.sky.radiance.to_vec3().x;
-            if ui.add(egui::Slider::new(&mut sky, 0.0..=2.0).text("sky")).changed() {
-                self.scene.sky.radiance = crate::scene::Rgb::Grey(sky);
+            ui.add(
+                egui::Slider::new(&mut self.scene.sun.angular_radius_deg, 0.0..=10.0).text("sun radius").suffix("°"),
+            )
+            .on_hover_text("angular radius of the sun's disc: 0 is a point sun (hard shadows), the real sun is 0.27°");
+            let (mut colour, mut intensity) = colour_and_intensity(self.scene.sky.radiance);
+            let mut changed = false;
+            ui.horizontal(|ui| {
+                changed |= egui::color_picker::color_edit_button_rgb(ui, &mut colour)
+                    .on_hover_text("the sky's colour")
+                    .changed();
+                changed |= ui
+                    .add(egui::Slider::new(&mut intensity, 0.0..=2.0).text("sky radiance"))
+                    .on_hover_text("radiance of a uniform sky all around (0: black, the sun alone)")
+                    .changed();
+            });
+            if changed {
+                self.scene.sky.radiance = radiance_of(colour, intensity);
             }
 
             ui.separator();
             ui.heading("Camera");
-            ui.horizontal(|ui| {
+            ui.horizontal_wrapped(|ui| {
                 for (name, preset) in [
                     ("toplit", CameraPreset::Toplit),
                     ("backlit", CameraPreset::Backlit),
@@ -644,14 +1074,19 @@ impl NimbusApp {
                     }
                 }
             });
-            ui.add(egui::Slider::new(&mut self.orbit.distance, 1.0..=10.0).text("distance"));
-            ui.add(egui::Slider::new(&mut self.scene.camera.fov_y_deg, 5.0..=90.0).text("field of view"));
-            ui.label("Drag the image to orbit, scroll to zoom; Shift-drag or right-drag moves the sun.");
+            ui.add(egui::Slider::new(&mut self.orbit.distance, 1.0..=10.0).text("distance"))
+                .on_hover_text("from the cloud's centre, in box widths");
+            ui.add(egui::Slider::new(&mut self.scene.camera.fov_y_deg, 5.0..=90.0).text("field of view").suffix("°"))
+                .on_hover_text("vertical angle the image covers");
+            ui.label(
+                "Drag the image to orbit, scroll to zoom; Shift-drag or right-drag puts the sun under the pointer.",
+            );
 
             ui.separator();
             ui.heading("Render");
-            ui.horizontal(|ui| {
-                ui.radio_value(&mut self.scene.render.mode, "reference".to_string(), "path tracing");
+            ui.horizontal_wrapped(|ui| {
+                ui.radio_value(&mut self.scene.render.mode, "reference".to_string(), "path tracing")
+                    .on_hover_text("the reference: every bounce traced, unbiased, converges slowly");
                 ui.radio_value(&mut self.scene.render.mode, "predict".to_string(), "prediction at bounce k")
                     .on_hover_text("vertices 1 .. k-1 path traced, the learned model predicts the rest at vertex k");
                 ui.radio_value(&mut self.scene.render.mode, "preview".to_string(), "instant preview").on_hover_text(
@@ -667,7 +1102,7 @@ impl NimbusApp {
                         .on_hover_text("Wrenninge et al. 2013: N = 3, a = b = c = 0.5");
                 });
             }
-            ui.horizontal(|ui| {
+            ui.horizontal_wrapped(|ui| {
                 ui.label("algorithm");
                 ui.selectable_value(&mut self.scene.render.integrator, "path".to_string(), "unidirectional");
                 ui.selectable_value(&mut self.scene.render.integrator, "bdpt".to_string(), "bidirectional")
@@ -677,21 +1112,26 @@ impl NimbusApp {
                     );
             });
             let p2p = self.scene.render.mode == "predict" && self.scene.render.integrator == "bdpt";
-            let k_label =
-                if p2p { "k (segments per subpath; high = orders 2k+1 and up)" } else { "k (first high order)" };
-            ui.add(egui::Slider::new(&mut self.scene.k, 1..=8).text(k_label));
+            let k_tip = if p2p {
+                "segments per subpath: the orders 2k+1 and up are predicted"
+            } else {
+                "the first scattering order counted as high (predicted in prediction mode)"
+            };
+            ui.add(egui::Slider::new(&mut self.scene.k, 1..=8).text("k")).on_hover_text(k_tip);
             if self.scene.render.mode == "predict" {
-                ui.add(egui::Slider::new(&mut self.scene.render.p, 0.05..=1.0).text("prediction probability p"));
+                ui.add(egui::Slider::new(&mut self.scene.render.p, 0.05..=1.0).text("prediction prob. p"))
+                    .on_hover_text("the probability of predicting at vertex k instead of tracing on (thesis 5.4)");
                 if p2p {
                     ui.add(egui::Slider::new(&mut self.scene.render.r, 0.0..=0.3).text("distance threshold r"))
                         .on_hover_text(
-                            "end vertices closer than r are joined by extending the subpaths, not predicted",
+                            "end vertices closer than r (box widths) are joined by extending the subpaths, not \
+                             predicted",
                         );
                     let max_m = engine::integrator::bdpt::Prediction::MAX_CANDIDATES;
                     ui.add(
                         egui::Slider::new(&mut self.scene.render.candidates, 1..=max_m)
                             .logarithmic(true)
-                            .text("light subpath candidates"),
+                            .text("light candidates"),
                     )
                     .on_hover_text(
                         "light subpaths offered to each camera end vertex, one chosen by resampling; 1 is the \
@@ -723,28 +1163,149 @@ impl NimbusApp {
                     (true, _, Some(m)) => format!("model: {m}"),
                     (true, _, None) => "model: shipped point-to-point model".to_string(),
                     (false, Some(m), _) => format!("model: {m}"),
-                    (false, None, _) => "model: shipped global model".to_string(),
+                    (false, None, _) => format!("model: shipped {} model", self.scene.render.predictor),
                 });
             }
-            ui.horizontal(|ui| {
+            self.target_controls(ui);
+
+            ui.separator();
+            ui.heading("Image");
+            ui.horizontal_wrapped(|ui| {
                 ui.label("show");
                 for b in Buffer::ALL {
                     ui.selectable_value(&mut self.view_buffer, b, b.name());
                 }
             });
-            ui.add(egui::Slider::new(&mut self.exposure, -4.0..=6.0).text("exposure (stops)"));
+            ui.add(egui::Slider::new(&mut self.exposure, -4.0..=6.0).text("exposure").suffix(" stops"))
+                .on_hover_text("brightens (positive) or darkens the view and the PNG; the EXR keeps radiance");
             ui.horizontal(|ui| {
+                ui.label("tone curve");
                 ui.selectable_value(&mut self.tone, ToneMap::Filmic, "filmic");
                 ui.selectable_value(&mut self.tone, ToneMap::Clamp, "clamp");
             });
-            ui.horizontal(|ui| {
-                let mut w = self.scene.camera.width;
-                ui.add(egui::DragValue::new(&mut w).range(16..=2048).prefix("w "));
-                let mut h = self.scene.camera.height;
-                ui.add(egui::DragValue::new(&mut h).range(16..=2048).prefix("h "));
-                (self.scene.camera.width, self.scene.camera.height) = (w, h);
-            });
+            self.size_controls(ui);
         });
+    }
+
+    /// The render's target: until the next change, a number of samples per pixel or
+    /// of seconds.
+    fn target_controls(&mut self, ui: &mut egui::Ui) {
+        ui.horizontal_wrapped(|ui| {
+            ui.label("stop at").on_hover_text("the render stops there and says done; any change starts it again");
+            let mut kind = match self.target {
+                RenderTarget::Unlimited => 0,
+                RenderTarget::Spp(_) => 1,
+                RenderTarget::Seconds(_) => 2,
+            };
+            ui.selectable_value(&mut kind, 0, "never");
+            ui.selectable_value(&mut kind, 1, "spp");
+            ui.selectable_value(&mut kind, 2, "seconds");
+            self.target = match (kind, self.target) {
+                (1, RenderTarget::Spp(mut n)) => {
+                    ui.add(egui::DragValue::new(&mut n).range(1..=1_000_000).suffix(" spp"));
+                    RenderTarget::Spp(n)
+                }
+                (1, _) => RenderTarget::Spp(256),
+                (2, RenderTarget::Seconds(mut t)) => {
+                    ui.add(egui::DragValue::new(&mut t).range(0.5..=86_400.0).suffix(" s"));
+                    RenderTarget::Seconds(t)
+                }
+                (2, _) => RenderTarget::Seconds(30.0),
+                _ => RenderTarget::Unlimited,
+            };
+        });
+    }
+
+    /// The rendered size: the viewport's (scaled), or the scene's output size with
+    /// presets and an aspect lock.
+    fn size_controls(&mut self, ui: &mut egui::Ui) {
+        let mut fit = self.viewport_scale.is_some();
+        ui.checkbox(&mut fit, "render at the viewport's size").on_hover_text(
+            "on: the image fills the viewport at the scale below; off: it is rendered at the output size and fitted \
+             in; exports write the image as rendered",
+        );
+        if fit {
+            let mut scale = self.viewport_scale.unwrap_or(0.5) * 100.0;
+            ui.add(egui::Slider::new(&mut scale, 10.0..=100.0).text("resolution scale").suffix(" %"))
+                .on_hover_text("of the viewport's pixels: lower renders faster");
+            self.viewport_scale = Some(scale / 100.0);
+            let (w, h) = self.render_size();
+            ui.weak(format!("rendering {w} x {h}"));
+        } else {
+            self.viewport_scale = None;
+        }
+        ui.label("output size (scene file; rendered when the box above is off)");
+        let cam = &mut self.scene.camera;
+        let current = OUTPUT_SIZES
+            .iter()
+            .find(|(_, w, h)| (*w, *h) == (cam.width, cam.height))
+            .map(|(n, _, _)| n.to_string())
+            .unwrap_or_else(|| "custom".into());
+        egui::ComboBox::from_label("presets").selected_text(current).show_ui(ui, |ui| {
+            for (name, w, h) in OUTPUT_SIZES {
+                if ui.selectable_label((cam.width, cam.height) == (w, h), name).clicked() {
+                    (cam.width, cam.height) = (w, h);
+                }
+            }
+        });
+        ui.horizontal(|ui| {
+            let (w0, h0) = (cam.width, cam.height);
+            let (mut w, mut h) = (w0, h0);
+            ui.label("width");
+            let dw = ui.add(egui::DragValue::new(&mut w).range(16..=4096).suffix(" px")).changed();
+            ui.label("height");
+            let dh = ui.add(egui::DragValue::new(&mut h).range(16..=4096).suffix(" px")).changed();
+            ui.checkbox(&mut self.aspect_lock, "lock aspect");
+            if self.aspect_lock && dw && w0 > 0 {
+                h = ((w as f64 * h0 as f64 / w0 as f64).round() as u32).clamp(16, 4096);
+            } else if self.aspect_lock && dh && h0 > 0 {
+                w = ((h as f64 * w0 as f64 / h0 as f64).round() as u32).clamp(16, 4096);
+            }
+            (cam.width, cam.height) = (w, h);
+        });
+    }
+
+    /// A small sky dome seen from above: the centre is the zenith, the rim the
+    /// horizon; the sun's disc and the camera's direction are marked. Clicking or
+    /// dragging puts the sun there. Returns true when the sun moved.
+    fn sky_dome(&mut self, ui: &mut egui::Ui) -> bool {
+        let size = 110.0;
+        let (rect, response) = ui.allocate_exact_size(egui::vec2(size, size), egui::Sense::click_and_drag());
+        let response =
+            response.on_hover_text("the sky from above: the rim is the horizon; click or drag to place the sun");
+        let (c, radius) = (rect.center(), size / 2.0 - 4.0);
+        let painter = ui.painter_at(rect);
+        painter.circle_filled(c, radius, egui::Color32::from_rgb(36, 52, 78));
+        painter.circle_stroke(c, radius, egui::Stroke::new(1.0, egui::Color32::from_gray(150)));
+        painter.circle_stroke(c, radius / 2.0, egui::Stroke::new(0.5, egui::Color32::from_gray(90)));
+        // Screen x is +x, screen up is -z (north up), so azimuth 0 (+z) points down.
+        let at = |el: f32, az: f32| {
+            let r = radius * (1.0 - el.max(0.0) / 90.0);
+            let az = az.to_radians();
+            c + egui::vec2(r * az.sin(), r * az.cos())
+        };
+        let (forward, _, _, _) = self.camera_basis();
+        let (cam_el, cam_az) = sun_angles_of(-forward);
+        painter.circle_stroke(at(cam_el, cam_az), 4.0, egui::Stroke::new(1.5, egui::Color32::from_gray(220)));
+        painter.text(
+            at(cam_el, cam_az) + egui::vec2(6.0, 0.0),
+            egui::Align2::LEFT_CENTER,
+            "camera",
+            egui::FontId::proportional(10.0),
+            egui::Color32::from_gray(200),
+        );
+        let sun = at(self.sun_elevation_deg, self.sun_azimuth_deg);
+        let below = self.sun_elevation_deg < 0.0;
+        let colour = if below { egui::Color32::from_rgb(140, 110, 50) } else { egui::Color32::from_rgb(255, 214, 90) };
+        painter.circle_filled(sun, 5.0, colour);
+        if let Some(p) = response.interact_pointer_pos().filter(|_| response.clicked() || response.dragged()) {
+            let d = p - c;
+            let r = (d.length() / radius).min(1.0);
+            self.sun_elevation_deg = (90.0 * (1.0 - r)).clamp(0.0, 89.0);
+            self.sun_azimuth_deg = d.x.atan2(d.y).to_degrees().rem_euclid(360.0);
+            return true;
+        }
+        false
     }
 
     fn viewport(&mut self, ui: &mut egui::Ui) {
@@ -770,6 +1331,7 @@ impl NimbusApp {
         let avail = ui.available_size();
         let (rect, response) = ui.allocate_exact_size(avail, egui::Sense::click_and_drag());
         self.view_rect = rect;
+        self.pixels_per_point = ui.ctx().pixels_per_point();
         ui.painter().rect_filled(rect, 0.0, egui::Color32::from_gray(12));
         let side_by_side = self.compare && published.as_ref().is_some_and(|p| p.reference.is_some());
         let k = self.scene.k;
@@ -827,6 +1389,7 @@ impl NimbusApp {
         } else if let Some(t) = &self.texture {
             paint_fitted(ui, t, rect, "");
         }
+        self.image_rect = self.texture.as_ref().map(|t| fitted(t, rect));
         self.paint_sun(ui, rect);
 
         // Dragging: the wipe divider when grabbed near it, the sun with Shift or the
@@ -854,9 +1417,9 @@ impl NimbusApp {
                     }
                 }
                 ViewDrag::Sun => {
-                    self.sun_azimuth_deg = (self.sun_azimuth_deg + d.x * 0.4).rem_euclid(360.0);
-                    self.sun_elevation_deg = (self.sun_elevation_deg - d.y * 0.3).clamp(-89.0, 89.0);
-                    self.apply_sun();
+                    if let Some(p) = response.interact_pointer_pos() {
+                        self.point_sun_at(p);
+                    }
                 }
                 ViewDrag::Orbit => {
                     self.orbit.yaw_deg -= d.x * 0.4;
@@ -877,26 +1440,13 @@ impl NimbusApp {
     fn paint_sun(&self, ui: &egui::Ui, rect: egui::Rect) {
         let Some(texture) = &self.texture else { return };
         let shown = fitted(texture, rect);
-        let cam = &self.scene.camera;
-        let target = Vec3::from_array(cam.target);
-        let pos = Vec3::from_array(cam.position.unwrap_or([0.0, 0.0, 3.0]));
-        let forward = (target - pos).normalize_or(Vec3::NEG_Z);
-        let right = forward.cross(Vec3::from_array(cam.up)).normalize_or(Vec3::X);
-        let up = right.cross(forward);
+        let (_, right, up, _) = self.camera_basis();
         let to_sun = -Vec3::from_array(self.scene.sun.direction).normalize_or(Vec3::NEG_Y);
-        let depth = to_sun.dot(forward);
-        let tan_half = (cam.fov_y_deg.to_radians() / 2.0).tan();
-        let aspect = shown.width() / shown.height().max(1.0);
         let colour = egui::Color32::from_rgb(255, 214, 90);
-        if depth > 1e-3 {
-            let sx = to_sun.dot(right) / depth / (tan_half * aspect);
-            let sy = to_sun.dot(up) / depth / tan_half;
-            if sx.abs() <= 1.0 && sy.abs() <= 1.0 {
-                let p = shown.center() + egui::vec2(sx * shown.width() / 2.0, -sy * shown.height() / 2.0);
-                ui.painter().circle_stroke(p, 9.0, egui::Stroke::new(2.0, colour));
-                ui.painter().circle_filled(p, 4.0, colour);
-                return;
-            }
+        if let Some(p) = self.sun_marker() {
+            ui.painter().circle_stroke(p, 9.0, egui::Stroke::new(2.0, colour));
+            ui.painter().circle_filled(p, 4.0, colour);
+            return;
         }
         // Behind or outside the frame: a small arrow on the frame's edge.
         let dir = egui::vec2(to_sun.dot(right), -to_sun.dot(up));
@@ -914,38 +1464,19 @@ impl NimbusApp {
         let mb = self.worker.mailbox.lock().unwrap();
         ui.horizontal(|ui| {
             if let Some(p) = &mb.latest {
-                match p.standing_in {
-                    Some((which, under)) => {
-                        let render = match under {
-                            Some(n) => format!("render under it at {:.1} % noise", 100.0 * n),
-                            None => "render starting".into(),
-                        };
-                        ui.label(format!(
-                            "instant preview ({which}), {} passes   {:.2} s   {render}, shown below {:.0} %",
-                            p.film.spp(),
-                            p.render_secs,
-                            100.0 * worker::HANDOFF_NOISE
-                        ))
-                        .on_hover_text(
-                            "ray marched single scattering from the sun's transmittance field, higher orders from \
-                             the learned model or the octave approximation; the scene's own render replaces it once \
-                             it is clean",
-                        );
-                    }
-                    None => {
-                        let noise = if p.noise.is_finite() {
-                            format!("{:.1} %", 100.0 * p.noise)
-                        } else {
-                            "not known yet".to_string()
-                        };
-                        ui.label(format!(
-                            "{} spp   {:.1} s   {:.2} M samples/s   noise {noise}{}",
-                            p.film.spp(),
-                            p.render_secs,
-                            p.samples_per_sec / 1e6,
-                            if p.coarse { "   (coarse cloud while dragging)" } else { "" }
-                        ));
-                    }
+                let label = ui.label(status_text(p));
+                if p.standing_in.is_some() {
+                    label.on_hover_text(
+                        "ray marched single scattering from the sun's transmittance field, higher orders from the \
+                         learned model or the octave approximation; the scene's own render replaces it once it is \
+                         clean",
+                    );
+                } else {
+                    label.on_hover_text("noise: relative standard error over the cloud's pixels (the sky left out)");
+                }
+                if let Some(f) = p.progress {
+                    let text = if p.done { "done".to_string() } else { format!("{:.0} %", 100.0 * f) };
+                    ui.add(egui::ProgressBar::new(f as f32).desired_width(120.0).text(text));
                 }
             } else {
                 ui.label("starting…");
@@ -967,14 +1498,22 @@ impl NimbusApp {
         }
     }
 
+    /// The status bar's text for the latest image (what the window shows).
+    pub fn status_line(&self) -> Option<String> {
+        self.worker.mailbox.lock().unwrap().latest.as_ref().map(status_text)
+    }
+
     /// Sends the scene to the worker when it changed (coarse while the pointer is down).
     fn sync(&mut self, ctx: &egui::Context) {
         self.apply_camera();
         let dragging = ctx.input(|i| i.pointer.any_down());
-        let changed = self
-            .sent
-            .as_ref()
-            .is_none_or(|(s, coarse, cmp)| *s != self.scene || (*coarse && !dragging) || *cmp != self.compare);
+        // What the worker renders: the scene at the viewport's size (or its own).
+        let mut render = self.scene.clone();
+        (render.camera.width, render.camera.height) = self.render_size();
+        let changed = self.sent.as_ref().is_none_or(|(s, _, cmp, was_dragging)| {
+            *s != render || (*was_dragging && !dragging) || *cmp != self.compare || self.target != self.sent_target
+        });
+        self.sent_target = self.target;
         if !dragging {
             self.history.record(&self.scene);
         }
@@ -983,10 +1522,12 @@ impl NimbusApp {
                 self.worker.mailbox.lock().unwrap().error = Some((0, e.to_string()));
                 return;
             }
-            let grid_changed = self.sent.as_ref().is_none_or(|(s, _, _)| s.grid != self.scene.grid);
-            let coarse = dragging && grid_changed || dragging && self.sent.as_ref().is_some_and(|(_, c, _)| *c);
-            self.worker.render_compare(&self.scene, coarse, self.compare);
-            self.sent = Some((self.scene.clone(), coarse, self.compare));
+            // The cloud is built coarse while a cloud slider moves (and stays so until
+            // the pointer is released); a sun or camera drag keeps the full cloud.
+            let grid_changed = self.sent.as_ref().is_none_or(|(s, ..)| s.grid != self.scene.grid);
+            let coarse = dragging && (grid_changed || self.sent.as_ref().is_some_and(|(_, c, ..)| *c));
+            self.worker.render_with(&render, coarse, dragging, self.compare, self.target);
+            self.sent = Some((render, coarse, self.compare, dragging));
         }
     }
 }
@@ -995,14 +1536,20 @@ impl eframe::App for NimbusApp {
     fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
         let started = std::time::Instant::now();
         egui::Panel::top("menu").show(ui, |ui| self.menu(ui));
-        egui::Panel::right("controls").resizable(true).default_size(300.0).show(ui, |ui| self.controls(ui));
+        egui::Panel::right("controls").resizable(true).default_size(350.0).show(ui, |ui| self.controls(ui));
         egui::Panel::bottom("status").show(ui, |ui| self.status(ui));
         if self.compare && self.scene.render.mode == "predict" {
             egui::Panel::left("buffers").resizable(true).default_size(200.0).show(ui, |ui| self.compare_view.panel(ui));
         }
         egui::CentralPanel::default().show(ui, |ui| self.viewport(ui));
         let ctx = ui.ctx().clone();
-        self.shortcuts(&ctx);
+        if self.modeler.browser(&ctx, &mut self.scene.grid) {
+            self.grid_changed();
+        }
+        self.dialogs(&ctx);
+        if self.dialog.is_none() {
+            self.shortcuts(&ctx);
+        }
         self.apply_actions();
         self.sync(&ctx);
         let ms = started.elapsed().as_secs_f32() * 1e3;

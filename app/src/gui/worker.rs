@@ -23,12 +23,38 @@ pub enum Command {
     Render {
         scene: Box<SceneFile>,
         coarse: bool,
+        /// The pointer is down (a slider or the view is being dragged): the octave
+        /// preview only, no learned one (its set-up would hold the next change up).
+        dragging: bool,
         generation: u64,
         /// Also render the path-traced reference of the same scene and k, a pass of
         /// each in turn (only when the scene is in prediction mode).
         compare: bool,
+        /// When the render stops.
+        target: RenderTarget,
     },
     Quit,
+}
+
+/// When a render is finished: never (it refines until the next change), at a number
+/// of samples per pixel, or after a number of seconds.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RenderTarget {
+    Unlimited,
+    Spp(u32),
+    Seconds(f64),
+}
+
+impl RenderTarget {
+    /// How far a render of `spp` samples per pixel after `secs` seconds is, 0 ..= 1;
+    /// None without a target.
+    pub fn progress(self, spp: u32, secs: f64) -> Option<f64> {
+        match self {
+            RenderTarget::Unlimited => None,
+            RenderTarget::Spp(n) => Some((spp as f64 / n.max(1) as f64).min(1.0)),
+            RenderTarget::Seconds(t) => Some((secs / t.max(1e-3)).min(1.0)),
+        }
+    }
 }
 
 /// The latest finished pass, for the UI.
@@ -39,13 +65,17 @@ pub struct Published {
     pub render_secs: f64,
     /// Camera samples per second over this render.
     pub samples_per_sec: f64,
-    /// Relative standard error of the full image (mean over lit pixels); infinite
-    /// below 2 spp, where it is not known.
+    /// Relative standard error of the full image over the cloud's pixels
+    /// ([`engine::Film::cloud_noise`]); infinite below 2 spp, where it is not known.
     pub noise: f64,
+    /// The cloud was built below the scene's resolution because a cloud slider is
+    /// being dragged.
     pub coarse: bool,
     /// The integrator mode the film was rendered in (prediction falls back to path
     /// tracing when the model cannot be loaded).
     pub mode: engine::Mode,
+    /// The film is the instant preview (the scene's own mode, or standing in).
+    pub is_preview: bool,
     /// In compare mode: the path-traced reference (same scene, same k, its own seed),
     /// accumulating alongside `film`.
     pub reference: Option<Arc<Film>>,
@@ -53,6 +83,12 @@ pub struct Published {
     /// preview ("octaves", "learned") and the relative noise the render under it has
     /// reached so far (None before its first pass).
     pub standing_in: Option<(&'static str, Option<f64>)>,
+    /// The reference's noise in compare mode, as `noise`.
+    pub reference_noise: Option<f64>,
+    /// How far the render is toward its target (None without one).
+    pub progress: Option<f64>,
+    /// The render reached its target and stopped.
+    pub done: bool,
 }
 
 /// The scene's own render replaces the preview once its relative noise is below this
@@ -78,7 +114,9 @@ struct Job {
     reference: Option<Renderer>,
     generation: u64,
     start: Instant,
-    coarse: bool,
+    /// The cloud is built below the scene's resolution.
+    coarse_grid: bool,
+    target: RenderTarget,
     /// Prediction with a coarse depth field while the full one was not built yet:
     /// after the first pass the full field is built and the render starts over with it.
     upgrade: Option<Box<SceneFile>>,
@@ -162,7 +200,7 @@ pub fn spawn(
 /// where the variance is not known yet (and would read as 0, handing the view over to
 /// a one-sample image).
 fn relative_noise(film: &Film) -> f64 {
-    if film.spp() < 2 { f64::INFINITY } else { film.relative_noise(Buffer::Full) }
+    if film.spp() < 2 { f64::INFINITY } else { film.cloud_noise(Buffer::Full) }
 }
 
 /// The relative noise of `r`'s film, read in place (no copy of the buffers).
@@ -199,8 +237,9 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                 c @ Command::Render { .. } => next = Some(c),
             }
         }
-        if let Some(Command::Render { mut scene, coarse, generation, compare }) = next {
+        if let Some(Command::Render { mut scene, coarse, dragging, generation, compare, target }) = next {
             job = None;
+            let coarse_grid = coarse && scene.grid.resolution > COARSE_RESOLUTION;
             if coarse {
                 scene.grid.resolution = scene.grid.resolution.min(COARSE_RESOLUTION);
             }
@@ -242,17 +281,18 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                         // A first look at a quarter of the resolution (a few ms), then
                         // the full one in the loop.
                         if let Some(film) = quarter_pass(&pr, &control, generation) {
-                            publish_film(&mailbox, generation, film, &pr, Some(("octaves", None)), start, coarse);
+                            publish_film(&mailbox, generation, film, &pr, Some(("octaves", None)), start, coarse_grid);
                             wake();
                         }
                         // The learned preview follows unless a slider is moving or it
                         // is the scene's own render anyway.
-                        let learned = (!coarse && own.is_none()).then(|| scene.clone());
+                        let learned = (!dragging && own.is_none()).then(|| scene.clone());
                         standing = Some(Standing { renderer: pr, which: "octaves", passes: 0, learned });
                     }
                 }
                 // (The point-to-point model of BDPT prediction has no depth field.)
-                let nodes = if coarse || scene.render.mode != "predict" || scene.render.integrator == "bdpt" {
+                let nodes = if coarse || dragging || scene.render.mode != "predict" || scene.render.integrator == "bdpt"
+                {
                     COARSE_FIELD_NODES
                 } else if predictors.has(&scene, &built, full_nodes) {
                     full_nodes
@@ -265,7 +305,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             match built {
                 Ok((r, reference, warning)) => {
                     mailbox.lock().unwrap().error = warning.map(|w| (generation, w));
-                    job = Some(Job { main: r, reference, generation, start, coarse, upgrade, standing });
+                    job = Some(Job { main: r, reference, generation, start, coarse_grid, target, upgrade, standing });
                 }
                 Err(e) => {
                     mailbox.lock().unwrap().error = Some((generation, e));
@@ -298,7 +338,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                 }
                 st.passes += 1;
                 let under = Some(film_noise(&j.main)).filter(|n| n.is_finite());
-                publish_preview(&mailbox, j.generation, &st.renderer, st.which, under, j.start, j.coarse);
+                publish_preview(&mailbox, j.generation, &st.renderer, st.which, under, j.start, j.coarse_grid);
                 wake();
             }
         }
@@ -324,8 +364,13 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             }
         }
         let noise = film_noise(&j.main);
+        let secs = j.start.elapsed().as_secs_f64();
+        let spp = j.main.spp();
+        let progress = j.target.progress(spp, secs);
+        let done = progress.is_some_and(|p| p >= 1.0);
         if let Some(st) = &j.standing {
-            if noise > HANDOFF_NOISE {
+            // At its target the render is shown whatever its noise: it is what was asked for.
+            if noise > HANDOFF_NOISE && !done {
                 // The preview stays on screen; once it is no longer refined, say how
                 // far the render under it is.
                 if st.passes >= PREVIEW_PASSES {
@@ -339,7 +384,6 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             j.standing = None;
         }
         let film = Arc::new(j.main.snapshot());
-        let secs = j.start.elapsed().as_secs_f64();
         // Both renders' camera samples in compare mode.
         let passes = film.spp() as f64 * if j.reference.is_some() { 2.0 } else { 1.0 };
         let published = Published {
@@ -348,13 +392,20 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             noise,
             render_secs: secs,
             film,
-            coarse: j.coarse,
+            coarse: j.coarse_grid,
             mode: j.main.integrator().settings().mode,
+            is_preview: is_preview(&j.main),
+            reference_noise: j.reference.as_ref().map(film_noise),
             reference: j.reference.as_ref().map(|r| Arc::new(r.snapshot())),
             standing_in: None,
+            progress,
+            done,
         };
         mailbox.lock().unwrap().latest = Some(published);
         wake();
+        if done {
+            job = None; // finished: idle until the next change
+        }
     }
 }
 
@@ -403,9 +454,17 @@ fn publish_film(
         film: Arc::new(film),
         coarse,
         mode: r.integrator().settings().mode,
+        is_preview: is_preview(r),
         reference: None,
         standing_in,
+        reference_noise: None,
+        progress: None,
+        done: false,
     });
+}
+
+fn is_preview(r: &Renderer) -> bool {
+    matches!(r.integrator().technique(), engine::integrator::Technique::Preview)
 }
 
 /// The UI's handle on the worker.
@@ -427,14 +486,23 @@ impl WorkerHandle {
 
     /// Asks for a new render; the pass under way is abandoned.
     pub fn render(&self, scene: &SceneFile, coarse: bool) -> u64 {
-        self.render_compare(scene, coarse, false)
+        self.render_with(scene, coarse, coarse, false, RenderTarget::Unlimited)
     }
 
-    /// [`WorkerHandle::render`], with the path-traced reference alongside when
-    /// `compare` is set and the scene is in prediction mode.
-    pub fn render_compare(&self, scene: &SceneFile, coarse: bool, compare: bool) -> u64 {
+    /// [`WorkerHandle::render`], with the cloud coarse (`coarse`) and the learned
+    /// preview left out (`dragging`) as asked, the path-traced reference alongside
+    /// when `compare` is set and the scene is in prediction mode, until `target`.
+    pub fn render_with(
+        &self,
+        scene: &SceneFile,
+        coarse: bool,
+        dragging: bool,
+        compare: bool,
+        target: RenderTarget,
+    ) -> u64 {
         let generation = self.control.bump();
-        let _ = self.tx.send(Command::Render { scene: Box::new(scene.clone()), coarse, generation, compare });
+        let scene = Box::new(scene.clone());
+        let _ = self.tx.send(Command::Render { scene, coarse, dragging, generation, compare, target });
         generation
     }
 }

@@ -63,7 +63,7 @@ pub fn bench_memory(args: BenchMemoryArgs) -> Result<()> {
     let mut scene = crate::gui::default_scene();
     scene.render.mode = "predict".into();
     (scene.camera.width, scene.camera.height) = (args.size, args.size);
-    worker.render_compare(&scene, false, true);
+    worker.render_with(&scene, false, false, true, crate::gui::worker::RenderTarget::Unlimited);
     println!(
         "# nimbus bench memory: {}x{} cumulus 96^3, prediction k {} with the path-traced comparison, {:.0} s, {} threads",
         args.size,
