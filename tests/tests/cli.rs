@@ -218,3 +218,82 @@ fn preview_and_time_limit() {
     let e = format!("{:#}", nimbus(&["render", s(&scene), "--time-limit=-1", "--out", s(&exr)]).unwrap_err());
     assert!(e.contains("--time-limit"), "{e}");
 }
+
+/// `nimbus turntable`: N frames as EXR + PNG and an animated PNG; the camera turns
+/// (the frames differ) while the sun stays; a stopped run resumes keeping the frames
+/// written, and gives the same frames as an uninterrupted one; a folder holding
+/// another turntable is refused; `nimbus eval temporal` reads the frames back (a
+/// turntable against itself has no temporal error).
+#[test]
+fn turntable_writes_frames_resumes_and_refuses_other_settings() {
+    let guard = temp_dir("turntable");
+    let dir = guard.path().to_path_buf();
+    let scene = dir.join("scene.toml");
+    // (Not the built-in cumulus under a sun overhead: it looks the same from every side.)
+    let text = SCENE.replace("builtin = \"cumulus\"", "preset = \"scene-b\"") + "[sun]\ndirection = [0.6, -1.0, 0.3]\n";
+    std::fs::write(&scene, text).unwrap();
+    let out = dir.join("turn");
+    let args = ["turntable", s(&scene), "--frames", "4", "--spp", "2", "--out", s(&out), "--quiet"];
+    nimbus(&args).unwrap();
+    let frame = |i: u32, ext: &str| out.join(format!("frame-{i:04}.{ext}"));
+    for i in 0..4 {
+        assert!(frame(i, "exr").is_file() && frame(i, "png").is_file(), "frame {i}");
+    }
+    let anim = std::fs::read(out.join("turntable.png")).unwrap();
+    let actl = anim.windows(4).position(|w| w == b"acTL").expect("an animated PNG (acTL chunk)");
+    assert_eq!(u32::from_be_bytes(anim[actl + 4..actl + 8].try_into().unwrap()), 4, "4 frames in the animation");
+    let full = |i: u32| read_exr(&frame(i, "exr")).unwrap().2.into_iter().find(|l| l.name == "full").unwrap().rgb;
+    let first: Vec<_> = (0..4).map(full).collect();
+    assert!(first[0] != first[1], "the camera did not turn");
+
+    // A stopped run (frames 1 and 2 missing) resumes: frame 0 is kept as it was, the
+    // missing ones are made again, bit for bit the same.
+    let kept = std::fs::metadata(frame(0, "exr")).unwrap().modified().unwrap();
+    std::fs::remove_file(frame(1, "png")).unwrap();
+    std::fs::remove_file(frame(2, "exr")).unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(20));
+    nimbus(&args).unwrap();
+    assert_eq!(std::fs::metadata(frame(0, "exr")).unwrap().modified().unwrap(), kept, "frame 0 was rewritten");
+    for i in 0..4 {
+        assert!(full(i) == first[i as usize], "frame {i} differs after the resume");
+    }
+
+    // Other settings into the same folder are refused, naming it.
+    let e = nimbus(&["turntable", s(&scene), "--frames", "5", "--spp", "2", "--out", s(&out), "--quiet"])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("another turntable") && e.contains(s(&out)), "{e}");
+    let e = nimbus(&["turntable", s(&scene), "--orbit", "moon", "--out", s(&dir.join("x")), "--quiet"])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--orbit"), "{e}");
+
+    // The sun turning instead: the camera stays, the light moves.
+    let sun = dir.join("sun");
+    nimbus(&[
+        "turntable",
+        s(&scene),
+        "--frames",
+        "2",
+        "--spp",
+        "2",
+        "--orbit",
+        "sun",
+        "--degrees",
+        "180",
+        "--out",
+        s(&sun),
+        "--quiet",
+    ])
+    .unwrap();
+    let high = |f: &str| read_exr(&sun.join(f)).unwrap().2.into_iter().find(|l| l.name == "high").unwrap().rgb;
+    assert!(high("frame-0000.exr") != high("frame-0001.exr"), "the sun did not turn");
+
+    let t = app::lab::eval::temporal::eval_temporal(&app::lab::eval::temporal::EvalTemporalArgs {
+        frames: vec![out.clone()],
+        reference: Some(out.clone()),
+    })
+    .unwrap();
+    assert_eq!(t["temporal_error"].as_f64(), Some(0.0));
+    assert_eq!(t["frames"].as_u64(), Some(4));
+}

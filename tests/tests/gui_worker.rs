@@ -65,7 +65,7 @@ fn compare_mode_renders_the_reference_alongside() {
     let mut s = small_scene(10.0);
     s.render.mode = "predict".into();
     s.k = 2;
-    let g = worker.render_compare(&s, false, true);
+    let g = worker.render_with(&s, false, false, true, app::gui::worker::RenderTarget::Unlimited);
     let done = |g: u64| {
         move |w: &WorkerHandle| {
             w.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| {
@@ -81,7 +81,7 @@ fn compare_mode_renders_the_reference_alongside() {
     assert!(r.sums(engine::Buffer::Full) != p.film.sums(engine::Buffer::Full), "two different estimators");
     for (mode, compare) in [("predict", false), ("reference", true)] {
         s.render.mode = mode.into();
-        let g = worker.render_compare(&s, false, compare);
+        let g = worker.render_with(&s, false, false, compare, app::gui::worker::RenderTarget::Unlimited);
         wait_for(|| {
             worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g && p.film.spp() >= 2)
         });
@@ -132,7 +132,7 @@ fn the_preview_stands_in_until_the_render_is_clean() {
     let order: Vec<_> = seen.iter().map(|(w, _)| *w).collect();
     assert_eq!(order, [Some("octaves"), None], "{seen:?}");
 
-    let g = worker.render_compare(&s, false, true);
+    let g = worker.render_with(&s, false, false, true, app::gui::worker::RenderTarget::Unlimited);
     wait_for(|| worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g));
     assert!(worker.mailbox.lock().unwrap().latest.as_ref().unwrap().standing_in.is_none());
 }

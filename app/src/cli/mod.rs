@@ -9,6 +9,7 @@ pub mod mitsuba;
 pub mod modeler;
 pub mod render;
 pub mod train;
+pub mod turntable;
 
 use crate::lab;
 use anyhow::Result;
@@ -31,6 +32,9 @@ pub enum Command {
     Mitsuba(mitsuba::MitsubaArgs),
     /// Render every modeler preset into one contact-sheet PNG.
     Sheet(modeler::SheetArgs),
+    /// Render a sequence with the camera or the sun turning about the cloud: frames
+    /// as EXR + PNG and an animated PNG; resumable; any mode.
+    Turntable(turntable::TurntableArgs),
     /// Make training data for the learned models (resumable, shardable).
     Datagen {
         #[command(subcommand)]
@@ -72,6 +76,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Some(Command::Render(args)) => render::render(args),
         Some(Command::Model(args)) => modeler::model(args),
         Some(Command::Sheet(args)) => modeler::sheet(args),
+        Some(Command::Turntable(args)) => turntable::turntable(args),
         Some(Command::Mitsuba(args)) => mitsuba::mitsuba(args),
         Some(Command::Datagen { which }) => datagen::datagen(which),
         Some(Command::Train { which }) => train::train(which),

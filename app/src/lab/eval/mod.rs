@@ -8,6 +8,7 @@ pub mod common;
 pub mod global;
 pub mod p2p;
 pub mod preview;
+pub mod temporal;
 
 use anyhow::Result;
 use clap::Subcommand;
@@ -17,12 +18,17 @@ pub enum EvalCommand {
     /// The point-to-point model in BDPT (thesis 6.5): bias, TTUV and speedup against
     /// BDPT's high orders and against path tracing, backlit and frontlit, k = 1 .. 4.
     P2p(p2p::EvalP2pArgs),
+    /// Temporal stability of turntables (`nimbus turntable`): the temporal error of a
+    /// mode's frames against path-traced reference frames, and the static flicker
+    /// over several seeds.
+    Temporal(temporal::EvalTemporalArgs),
 }
 
 /// Runs `nimbus eval` (the global model's study) or `nimbus eval p2p`.
 pub fn run(which: Option<EvalCommand>, args: global::EvalArgs) -> Result<()> {
     match which {
         Some(EvalCommand::P2p(args)) => p2p::eval_p2p(&args).map(|_| ()),
+        Some(EvalCommand::Temporal(args)) => temporal::eval_temporal(&args).map(|_| ()),
         None => global::eval(&args).map(|_| ()),
     }
 }
