@@ -41,8 +41,8 @@ pub struct TurntableArgs {
     /// Samples per pixel per frame (default 64).
     #[arg(long, conflicts_with = "time_per_frame")]
     pub spp: Option<u32>,
-    /// Seconds per frame instead of a sample count (equal-time comparisons; the
-    /// frames then depend on the machine's speed).
+    /// Seconds per frame, set-up included, instead of a sample count (equal-time
+    /// comparisons; at least one pass; the frames then depend on the machine's speed).
     #[arg(long, value_name = "SECONDS")]
     pub time_per_frame: Option<f64>,
     /// Prediction at bounce K (orders 1 .. K-1 path traced).
@@ -229,6 +229,9 @@ pub fn turntable(args: TurntableArgs) -> Result<()> {
     let start = Instant::now();
     for i in todo {
         let angle = args.degrees * i as f32 / args.frames as f32;
+        // A time budget counts the frame's set-up too (a learned preview's lattice is
+        // built for every camera), so modes compare at equal time per frame.
+        let frame_start = Instant::now();
         let frame = turned(&file, &args.orbit, angle)?;
         let scene = Arc::new(frame.build_scene(Some(grid.clone()))?);
         let setup = frame.integrator_cached(&scene, models::global::depth_field::DEFAULT_MAX_NODES, &mut cache)?;
@@ -236,7 +239,6 @@ pub fn turntable(args: TurntableArgs) -> Result<()> {
             bar.suspend(|| eprintln!("warning: {w}"));
         }
         let mut renderer = Renderer::new(scene, setup.integrator)?;
-        let frame_start = Instant::now();
         let generation = control.generation();
         let mut cancelled = false;
         while renderer.spp() < spp {

@@ -59,6 +59,38 @@ pub fn temporal_error(frames: &[Vec<f32>], reference: &[Vec<f32>]) -> f64 {
     if n == 0 || mean <= 0.0 { 0.0 } else { err / n as f64 / mean }
 }
 
+/// The relative bias of docs/conventions.md on luminance, averaged over frames: per
+/// frame, the mean over 16 x 16 pixel blocks (with light in the reference) of
+/// |block mean of `frames` - block mean of `reference`| over the mean reference block.
+pub fn block_bias(frames: &[Vec<f32>], reference: &[Vec<f32>], w: usize, h: usize) -> f64 {
+    let mut total = 0.0;
+    let n = frames.len().min(reference.len());
+    for t in 0..n {
+        let (mut err, mut sum, mut blocks) = (0.0f64, 0.0f64, 0usize);
+        for by in (0..h).step_by(16) {
+            for bx in (0..w).step_by(16) {
+                let (mut a, mut b, mut c) = (0.0f64, 0.0f64, 0usize);
+                for y in by..(by + 16).min(h) {
+                    for x in bx..(bx + 16).min(w) {
+                        a += frames[t][y * w + x] as f64;
+                        b += reference[t][y * w + x] as f64;
+                        c += 1;
+                    }
+                }
+                if b > 0.0 {
+                    err += (a - b).abs() / c as f64;
+                    sum += b / c as f64;
+                    blocks += 1;
+                }
+            }
+        }
+        if blocks > 0 && sum > 0.0 {
+            total += err / sum;
+        }
+    }
+    if n == 0 { 0.0 } else { total / n as f64 }
+}
+
 /// Per-pixel standard deviation over `runs` (the same frames, other seeds) divided
 /// by the mean, averaged over frames.
 pub fn static_flicker(runs: &[Vec<Vec<f32>>]) -> f64 {
@@ -100,7 +132,10 @@ pub fn eval_temporal(args: &EvalTemporalArgs) -> Result<serde_json::Value> {
             if reference.len() != images[0].len() || reference[0].len() != images[0][0].len() {
                 bail!("{}: not the same frames as {} (count or size)", dir.display(), args.frames[0].display());
             }
-            Some(images.iter().map(|r| temporal_error(r, &reference)).sum::<f64>() / images.len() as f64)
+            let temporal = images.iter().map(|r| temporal_error(r, &reference)).sum::<f64>() / images.len() as f64;
+            let bias = images.iter().map(|r| block_bias(r, &reference, size.0 as usize, size.1 as usize)).sum::<f64>()
+                / images.len() as f64;
+            Some((temporal, bias))
         }
         None => None,
     };
@@ -108,7 +143,10 @@ pub fn eval_temporal(args: &EvalTemporalArgs) -> Result<serde_json::Value> {
     let out = serde_json::json!({
         "frames": images[0].len(),
         "seeds": images.len(),
-        "temporal_error": temporal,
+        "temporal_error": temporal.map(|t| t.0),
+        // The relative bias against the reference (16 x 16 blocks, mean over frames
+        // and seeds); noise in either adds to it.
+        "relative_bias": temporal.map(|t| t.1),
         "static_flicker": flicker.is_finite().then_some(flicker),
     });
     println!("{out}");
@@ -150,5 +188,11 @@ mod tests {
         let expect = 0.9213 * s / mean;
         assert!((flicker - expect).abs() < 0.03 * expect, "{flicker} vs {expect}");
         assert!(static_flicker(&runs[..1]).is_nan());
+        // A 10 % brighter image is 10 % biased, the reference itself not at all.
+        let (w, h) = (50, 40);
+        let r: Vec<Vec<f32>> = (0..3).map(|t| (0..w * h).map(|p| 1.0 + ((p + t) % 5) as f32).collect()).collect();
+        let brighter: Vec<Vec<f32>> = r.iter().map(|f| f.iter().map(|v| v * 1.1).collect()).collect();
+        assert!((block_bias(&brighter, &r, w, h) - 0.1).abs() < 1e-6);
+        assert_eq!(block_bias(&r, &r, w, h), 0.0);
     }
 }
