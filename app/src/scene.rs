@@ -733,14 +733,17 @@ impl SceneFile {
     ) -> Result<Result<Arc<dyn InScatterPredictor>, ModelError>, SceneError> {
         let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("prediction needs a sun".into()))?;
         let key = PredictorKey::new(self, scene, max_nodes);
-        if let Some((k, bound)) = &cache.last {
-            if *k == key {
-                return Ok(Ok(bound.clone()));
-            }
+        if let Some(i) = cache.bound.iter().position(|(k, _)| *k == key) {
+            // Most recently used first.
+            let hit = cache.bound.remove(i);
+            let bound = hit.1.clone();
+            cache.bound.insert(0, hit);
+            return Ok(Ok(bound));
         }
         Ok(self.load_model().map(|model| {
             let bound = model.bind(&scene.medium, sun, max_nodes);
-            cache.last = Some((key, bound.clone()));
+            cache.bound.insert(0, (key, bound.clone()));
+            cache.bound.truncate(PredictorCache::BINDINGS);
             bound
         }))
     }
@@ -865,14 +868,23 @@ struct PredictorKey {
     nodes: u32,
 }
 
-/// The last bound model (see [`SceneFile::integrator_cached`]). Holding it keeps its
-/// grid alive, so the grid's address cannot be reused by another cloud meanwhile.
+/// The models bound last (see [`SceneFile::integrator_cached`]). Holding them keeps their
+/// grids alive, so a grid's address cannot be reused by another cloud meanwhile.
 #[derive(Default)]
 pub struct PredictorCache {
-    last: Option<(PredictorKey, Arc<dyn InScatterPredictor>)>,
+    /// The models bound last, most recent first (at most [`PredictorCache::BINDINGS`]):
+    /// the window binds one model at several field sizes per change (a coarse first
+    /// look, the render's coarse start, its full field), and each must stay cached for
+    /// the next camera change.
+    bound: Vec<(PredictorKey, Arc<dyn InScatterPredictor>)>,
     p2p: Option<(PredictorKey, Arc<BoundP2pModel>)>,
     /// The preview's sun transmittance (keyed by cloud, rho and sun; no model).
     sun: Option<(PredictorKey, Arc<SunTransmittance>)>,
+}
+
+impl PredictorCache {
+    /// Bindings kept.
+    pub const BINDINGS: usize = 3;
 }
 
 impl PredictorKey {
@@ -896,7 +908,8 @@ impl PredictorKey {
 impl PredictorCache {
     /// Whether the cache holds the model of `file` bound for `scene` with `max_nodes`.
     pub fn has(&self, file: &SceneFile, scene: &Scene, max_nodes: u32) -> bool {
-        self.last.as_ref().is_some_and(|(k, _)| *k == PredictorKey::new(file, scene, max_nodes))
+        let key = PredictorKey::new(file, scene, max_nodes);
+        self.bound.iter().any(|(k, _)| *k == key)
     }
 }
 

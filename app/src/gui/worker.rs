@@ -3,9 +3,10 @@
 //! UI thread. Every change bumps the shared generation counter, so the pass under way
 //! stops at its next tile, and the worker starts over with the new snapshot.
 //!
-//! After every change the window shows the instant preview first: one pass of the
-//! octave approximation at full resolution (a few tens of milliseconds), then, unless
-//! a slider is being dragged, the learned preview, refined for a few passes. The
+//! After every change the window shows the instant preview first: the learned
+//! preview on a coarse lattice and depth field (a quarter-resolution pass, then full
+//! resolution; tens of milliseconds), then, unless a slider is being dragged, the
+//! learned preview at its own resolution, refined for a few passes. The
 //! scene's own render (path tracing or prediction) accumulates meanwhile and takes
 //! over once its relative noise is below [`HANDOFF_NOISE`], so no grainy frame comes
 //! between a change and the preview. A scene in preview mode refines its own preview.
@@ -80,7 +81,7 @@ pub struct Published {
     /// accumulating alongside `film`.
     pub reference: Option<Arc<Film>>,
     /// `film` is the instant preview standing in for the scene's own render: which
-    /// preview ("octaves", "learned") and the relative noise the render under it has
+    /// preview ([`FIRST_LOOK`], "learned") and the relative noise the render under it has
     /// reached so far (None before its first pass).
     pub standing_in: Option<(&'static str, Option<f64>)>,
     /// The reference's noise in compare mode, as `noise`.
@@ -139,6 +140,16 @@ fn preview_renderer(
     let setup = f.integrator_cached(&scene, nodes, cache).map_err(|e| e.to_string())?;
     Renderer::new(scene, setup.integrator).map_err(|e| e.to_string())
 }
+
+/// Lattice nodes per axis of the first look after a change (the learned preview's
+/// own default is 48).
+pub const FIRST_LOOK_LATTICE: u32 = 12;
+
+/// Depth-field nodes per axis of the first look.
+pub const FIRST_LOOK_FIELD: u32 = 16;
+
+/// What the status bar calls the first look.
+pub const FIRST_LOOK: &str = "learned, coarse";
 
 /// Depth-field nodes per axis while a slider moves or before the full field is ready
 /// (a few tens of milliseconds to build, against about a second for the full field).
@@ -275,19 +286,25 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                 let own = (scene.render.mode == "preview").then(|| scene.render.preview.clone());
                 let comparing = compare && scene.render.mode == "predict";
                 if !comparing && own.as_deref() != Some("octaves") {
-                    let octaves =
-                        preview_renderer(&scene, built.clone(), "octaves", COARSE_FIELD_NODES, &mut predictors);
-                    if let Ok(pr) = octaves {
+                    // The learned preview on a coarse lattice and depth field (tens of
+                    // milliseconds): near the render's brightness from the first
+                    // frame, where the octaves at their default constants are several
+                    // times too dark (docs/evaluation.md).
+                    let mut first = (*scene).clone();
+                    first.render.preview_nodes = FIRST_LOOK_LATTICE;
+                    let quick = preview_renderer(&first, built.clone(), "learned", FIRST_LOOK_FIELD, &mut predictors);
+                    if let Ok(pr) = quick {
                         // A first look at a quarter of the resolution (a few ms), then
                         // the full one in the loop.
                         if let Some(film) = quarter_pass(&pr, &control, generation) {
-                            publish_film(&mailbox, generation, film, &pr, Some(("octaves", None)), start, coarse_grid);
+                            let which = Some((FIRST_LOOK, None));
+                            publish_film(&mailbox, generation, film, &pr, which, start, coarse_grid);
                             wake();
                         }
                         // The learned preview follows unless a slider is moving or it
                         // is the scene's own render anyway.
                         let learned = (!dragging && own.is_none()).then(|| scene.clone());
-                        standing = Some(Standing { renderer: pr, which: "octaves", passes: 0, learned });
+                        standing = Some(Standing { renderer: pr, which: FIRST_LOOK, passes: 0, learned });
                     }
                 }
                 // (The point-to-point model of BDPT prediction has no depth field.)
@@ -321,7 +338,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
         }
         if let Some(st) = &mut j.standing {
             if st.passes >= 1 && st.learned.is_some() {
-                // The learned preview replaces the octaves after their first full pass
+                // The full learned preview replaces the first look after its first pass
                 // (its lattice is built once for this cloud, sun and camera).
                 let file = st.learned.take().expect("checked");
                 let full = models::global::depth_field::DEFAULT_MAX_NODES;
