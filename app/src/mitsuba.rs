@@ -42,10 +42,18 @@ pub fn scene_xml(scene: &Scene, spp: u32, vol_name: &str) -> String {
             v3(e)
         )
     });
+    // Mitsuba's constant emitter holds a uniform sky; a gradient or a ground is
+    // written as the horizon's radiance, and the file says so.
     let sky = (!scene.sky.is_black()).then(|| {
+        let s = &scene.sky;
+        let note = if s.zenith != s.horizon || s.ground != s.horizon {
+            "    <!-- Nimbus's sky has a gradient or a ground: written as its horizon radiance -->\n"
+        } else {
+            ""
+        };
         format!(
-            "    <emitter type=\"constant\">\n        <rgb name=\"radiance\" value=\"{}\"/>\n    </emitter>\n",
-            v3(scene.sky.radiance)
+            "{note}    <emitter type=\"constant\">\n        <rgb name=\"radiance\" value=\"{}\"/>\n    </emitter>\n",
+            v3(s.horizon)
         )
     });
     format!(

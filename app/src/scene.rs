@@ -163,13 +163,23 @@ impl Default for SunDesc {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SkyDesc {
-    /// Constant environment radiance, >= 0. Default 0 (black).
+    /// Environment radiance at the zenith, >= 0 (grey or [r, g, b]); the whole sky
+    /// when `horizon` is not given. Default 0 (black).
     pub radiance: Rgb,
+    /// Radiance at the horizon, >= 0: the sky runs from it to `radiance` at the
+    /// zenith, linear in the sine of the elevation. Default: `radiance` (uniform).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub horizon: Option<Rgb>,
+    /// Albedo of a ground plane below the horizon, 0 ..= 1: seen from the cloud it
+    /// has the radiance albedo / pi x (the sun's irradiance on it + the sky's),
+    /// unshadowed by the cloud. Default: none, the sky's horizon continues below.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ground_albedo: Option<f32>,
 }
 
 impl Default for SkyDesc {
     fn default() -> Self {
-        SkyDesc { radiance: Rgb::Grey(0.0) }
+        SkyDesc { radiance: Rgb::Grey(0.0), horizon: None, ground_albedo: None }
     }
 }
 
@@ -481,6 +491,16 @@ impl SceneFile {
         if !(sky.is_finite() && sky.min_element() >= 0.0) {
             return Err(range_err("sky.radiance", format!("{sky}"), ">= 0 and finite"));
         }
+        if let Some(h) = self.sky.horizon.map(Rgb::to_vec3) {
+            if !(h.is_finite() && h.min_element() >= 0.0) {
+                return Err(range_err("sky.horizon", format!("{h}"), ">= 0 and finite"));
+            }
+        }
+        if let Some(a) = self.sky.ground_albedo {
+            if !(0.0..=1.0).contains(&a) {
+                return Err(range_err("sky.ground_albedo", a, "0 ..= 1"));
+            }
+        }
         let c = &self.camera;
         if let Some(p) = &c.preset {
             if CameraPreset::from_name(p).is_none() {
@@ -620,6 +640,21 @@ impl SceneFile {
             .map_err(|e| SceneError::Invalid(format!("camera: {e}")))
     }
 
+    /// The engine's sky: the gradient from the horizon to the zenith and the ground
+    /// lit by the sun and the sky (docs/conventions.md).
+    pub fn build_sky(&self) -> Result<Sky, SceneError> {
+        let zenith = self.sky.radiance.to_vec3();
+        let horizon = self.sky.horizon.map_or(zenith, Rgb::to_vec3);
+        let mut sky = Sky { zenith, horizon, ground: horizon };
+        if let Some(albedo) = self.sky.ground_albedo {
+            let sun = self.build_sun()?;
+            let up = (-sun.direction().y).max(0.0);
+            let irradiance = sun.radiance() * up + sky.upper_irradiance();
+            sky.ground = irradiance * (albedo / std::f32::consts::PI);
+        }
+        Ok(sky)
+    }
+
     /// The engine scene, with `grid` reused if given (so several renders of one cloud
     /// share it).
     pub fn build_scene(&self, grid: Option<Arc<DensityGrid>>) -> Result<Scene, SceneError> {
@@ -630,12 +665,7 @@ impl SceneFile {
         };
         let medium = Medium::new(grid, self.medium.rho, self.medium.albedo, self.phase())
             .map_err(|e| SceneError::Invalid(format!("medium: {e}")))?;
-        Ok(Scene {
-            medium,
-            sun: Some(self.build_sun()?),
-            sky: Sky { radiance: self.sky.radiance.to_vec3() },
-            camera: self.build_camera()?,
-        })
+        Ok(Scene { medium, sun: Some(self.build_sun()?), sky: self.build_sky()?, camera: self.build_camera()? })
     }
 
     pub fn settings(&self) -> RenderSettings {

@@ -80,14 +80,65 @@ impl Sun {
     }
 }
 
-/// Constant environment radiance (black by default).
+/// Environment radiance (black by default): a gradient from `horizon` to `zenith`
+/// over the upper hemisphere, linear in the sine of the elevation, and `ground`
+/// below the horizon. All three equal: a uniform sky.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Sky {
-    pub radiance: Vec3,
+    pub zenith: Vec3,
+    pub horizon: Vec3,
+    pub ground: Vec3,
 }
 
 impl Sky {
+    /// A uniform sky of `radiance`.
+    pub fn uniform(radiance: Vec3) -> Sky {
+        Sky { zenith: radiance, horizon: radiance, ground: radiance }
+    }
+
     pub fn is_black(&self) -> bool {
-        self.radiance == Vec3::ZERO
+        self.zenith == Vec3::ZERO && self.horizon == Vec3::ZERO && self.ground == Vec3::ZERO
+    }
+
+    /// The radiance seen looking along `dir` (unit length): exactly `horizon` +
+    /// (`zenith` - `horizon`) dir.y above the horizon (so a uniform sky gives its
+    /// radiance bit for bit), `ground` below.
+    #[inline]
+    pub fn radiance(&self, dir: Vec3) -> Vec3 {
+        if dir.y >= 0.0 { self.horizon + (self.zenith - self.horizon) * dir.y } else { self.ground }
+    }
+
+    /// Irradiance of the upper hemisphere on an upward-facing surface, unshadowed:
+    /// 2 pi int_0^1 (h + (z - h) mu) mu dmu = pi h + 2 pi (z - h) / 3.
+    pub fn upper_irradiance(&self) -> Vec3 {
+        std::f32::consts::PI * self.horizon + 2.0 * std::f32::consts::PI * (self.zenith - self.horizon) / 3.0
+    }
+}
+
+#[cfg(test)]
+mod sky_tests {
+    use super::*;
+
+    #[test]
+    fn sky_gradient_ground_and_irradiance() {
+        let u = Sky::uniform(Vec3::new(0.3, 0.5, 0.7));
+        for d in [Vec3::Y, Vec3::NEG_Y, Vec3::X, Vec3::new(0.6, 0.8, 0.0)] {
+            assert_eq!(u.radiance(d), Vec3::new(0.3, 0.5, 0.7), "a uniform sky is the same bit for bit");
+        }
+        let s = Sky { zenith: Vec3::new(0.2, 0.4, 1.0), horizon: Vec3::splat(1.0), ground: Vec3::splat(0.1) };
+        assert!((s.radiance(Vec3::Y) - s.zenith).abs().max_element() < 1e-6);
+        assert_eq!(s.radiance(Vec3::Z), s.horizon);
+        assert_eq!(s.radiance(Vec3::new(0.0, -0.5, 0.866)), s.ground);
+        assert!((s.radiance(Vec3::new(0.8, 0.6, 0.0)) - Vec3::new(0.52, 0.64, 1.0)).length() < 1e-6);
+        // The upper irradiance against a midpoint rule over mu = cos theta.
+        let n = 100_000;
+        let mut e = glam::DVec3::ZERO;
+        for i in 0..n {
+            let mu = (i as f32 + 0.5) / n as f32;
+            e += (s.radiance(Vec3::new((1.0 - mu * mu).sqrt(), mu, 0.0)) * mu).as_dvec3();
+        }
+        let e = (e * (2.0 * std::f64::consts::PI / n as f64)).as_vec3();
+        assert!((e - s.upper_irradiance()).abs().max_element() < 1e-4, "{e} vs {}", s.upper_irradiance());
+        assert!(Sky::default().is_black() && !s.is_black());
     }
 }

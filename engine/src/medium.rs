@@ -366,14 +366,15 @@ impl Medium {
     /// One step of a random walk: at a scattering vertex `x` whose path came from
     /// direction `wo` (pointing back toward the previous vertex), samples the phase
     /// function (weight p / pdf = 1) and the free flight to the next real collision.
-    /// Returns the next vertex and its own `wo`, or None when the walk leaves the
-    /// medium. Shared by the path tracer, BDPT's subpaths and the point-to-point walks.
+    /// Returns the next vertex and its own `wo`, or, when the walk leaves the medium,
+    /// the direction it leaves in (where the sky is seen). Shared by the path tracer,
+    /// BDPT's subpaths and the point-to-point walks.
     #[inline]
-    pub fn scatter(&self, x: Vec3, wo: Vec3, rng: &mut Rng) -> Option<(Vec3, Vec3)> {
+    pub fn scatter(&self, x: Vec3, wo: Vec3, rng: &mut Rng) -> Result<(Vec3, Vec3), Vec3> {
         let wi = self.phase.sample(wo, rng.uniform2()).wi;
         match self.sample_free_flight(x, wi, f32::INFINITY, rng) {
-            FreeFlight::Collision { t } => Some((x + wi * t, -wi)),
-            FreeFlight::Escaped => None,
+            FreeFlight::Collision { t } => Ok((x + wi * t, -wi)),
+            FreeFlight::Escaped => Err(wi),
         }
     }
 

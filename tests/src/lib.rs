@@ -41,7 +41,7 @@ pub fn cumulus_scene(
     Scene {
         medium: Medium::new(grid, rho, albedo, phase).unwrap(),
         sun,
-        sky: Sky { radiance: sky },
+        sky: Sky::uniform(sky),
         camera: Camera::new(Vec3::new(0.0, 0.0, 2.6), Vec3::ZERO, Vec3::Y, 30.0, size, size).unwrap(),
     }
 }

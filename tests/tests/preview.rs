@@ -170,7 +170,7 @@ fn preview_single_scattering_matches_path_tracing() {
     assert!(lit >= 4, "the sphere is lit in {lit} blocks");
     // The sky seen through the sphere: direct buffers agree too.
     let mut with_sky = (*scene).clone();
-    with_sky.sky = engine::Sky { radiance: Vec3::splat(0.2) };
+    with_sky.sky = engine::Sky::uniform(Vec3::splat(0.2));
     let scene = Arc::new(with_sky);
     let render = |integ: Integrator, spp: u32| {
         let mut r = Renderer::new(scene.clone(), integ).unwrap();

@@ -80,7 +80,7 @@ fn a_stop_acts_within_a_pass() {
     let medium = Medium::new(grid, 400.0, 1.0, PhaseFunction::HenyeyGreenstein { g: 0.9 }).unwrap();
     let sun = engine::Sun::new(Vec3::new(0.0, -1.0, 0.0), Vec3::ONE, 0.0).unwrap();
     let camera = engine::Camera::new(Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO, Vec3::Y, 25.0, 256, 256).unwrap();
-    let scene = Arc::new(engine::Scene { medium, sun: Some(sun), sky: engine::Sky { radiance: Vec3::ZERO }, camera });
+    let scene = Arc::new(engine::Scene { medium, sun: Some(sun), sky: engine::Sky::default(), camera });
     let integrator = Integrator::new(Default::default(), None).unwrap();
     let mut renderer = Renderer::new(scene, integrator).unwrap();
     let control = Arc::new(RenderControl::new());

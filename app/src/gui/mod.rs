@@ -1055,6 +1055,34 @@ impl NimbusApp {
             if changed {
                 self.scene.sky.radiance = radiance_of(colour, intensity);
             }
+            let sky = &mut self.scene.sky;
+            let (mut colour, mut intensity) = colour_and_intensity(sky.horizon.unwrap_or(sky.radiance));
+            let mut changed = false;
+            ui.horizontal(|ui| {
+                changed |= egui::color_picker::color_edit_button_rgb(ui, &mut colour)
+                    .on_hover_text("the sky's colour at the horizon")
+                    .changed();
+                changed |= ui
+                    .add(egui::Slider::new(&mut intensity, 0.0..=2.0).text("horizon radiance"))
+                    .on_hover_text("the sky runs from this at the horizon to the sky radiance above at the zenith")
+                    .changed();
+            });
+            if changed {
+                sky.horizon = Some(radiance_of(colour, intensity));
+            }
+            let mut ground = sky.ground_albedo.is_some();
+            ui.horizontal(|ui| {
+                ui.checkbox(&mut ground, "ground").on_hover_text(
+                    "a ground plane below the horizon, lit by the sun and the sky (not shadowed by the cloud); \
+                     off: the horizon's colour continues below",
+                );
+                let mut a = sky.ground_albedo.unwrap_or(0.3);
+                if ground {
+                    ui.add(egui::Slider::new(&mut a, 0.0..=1.0).text("ground albedo"))
+                        .on_hover_text("the fraction of light the ground reflects: grass 0.2, snow 0.8");
+                }
+                sky.ground_albedo = ground.then_some(a);
+            });
 
             ui.separator();
             ui.heading("Camera");

@@ -148,7 +148,7 @@ fn subpath(medium: &Medium, x: Vec3, wo: Vec3, max: usize, rng: &mut Rng, out: &
         if !roulette(len as u32 - 1, &mut beta, rng) {
             break;
         }
-        let Some(next) = medium.scatter(x, wo, rng) else { break };
+        let Ok(next) = medium.scatter(x, wo, rng) else { break };
         (x, wo) = next;
         beta *= medium.albedo();
         if beta <= 0.0 {
@@ -224,7 +224,7 @@ pub fn sample_transport_by_segments(
         if !roulette(s as u32, &mut beta, rng) {
             return;
         }
-        let Some(next) = medium.scatter(x, wo, rng) else { return };
+        let Ok(next) = medium.scatter(x, wo, rng) else { return };
         (x, wo) = next;
         beta *= medium.albedo();
         if beta <= 0.0 {

@@ -35,7 +35,7 @@ pub(crate) fn trace(
 ) -> PathSample {
     let mut out = PathSample::default();
     match scene.medium.sample_free_flight(o, d, f32::INFINITY, rng) {
-        FreeFlight::Escaped => out.direct = scene.sky.radiance,
+        FreeFlight::Escaped => out.direct = scene.sky.radiance(d),
         FreeFlight::Collision { t } => {
             let k = settings.k;
             scatter_from(
@@ -130,11 +130,14 @@ pub(crate) fn scatter_from(
         if !roulette(order, &mut beta, rng) {
             return;
         }
-        let Some(next) = medium.scatter(x, wo, rng) else {
-            if !scene.sky.is_black() && order >= min_order {
-                add(order, scene.sky.radiance * beta);
+        let next = match medium.scatter(x, wo, rng) {
+            Ok(next) => next,
+            Err(wi) => {
+                if !scene.sky.is_black() && order >= min_order {
+                    add(order, scene.sky.radiance(wi) * beta);
+                }
+                return;
             }
-            return;
         };
         (x, wo) = next;
         order += 1;

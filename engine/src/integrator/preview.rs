@@ -175,7 +175,7 @@ impl Preview {
         let mut out = PathSample::default();
         let offset = rng.uniform();
         let Some(sun) = &scene.sun else {
-            out.direct = scene.sky.radiance;
+            out.direct = scene.sky.radiance(d);
             return out;
         };
         let wo = -d;
@@ -239,7 +239,7 @@ impl Preview {
         }
         out.low = sun.radiance() * single;
         out.high = sun.radiance() * multiple;
-        out.direct = scene.sky.radiance * tr;
+        out.direct = scene.sky.radiance(d) * tr;
         out
     }
 }

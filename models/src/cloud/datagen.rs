@@ -238,8 +238,8 @@ pub fn camera_path_query(medium: &Medium, vertex: u32, view: Option<(Vec3, f32)>
         let mut reached = true;
         for _ in 1..vertex {
             match medium.scatter(x, wo, rng) {
-                Some(next) => (x, wo) = next,
-                None => {
+                Ok(next) => (x, wo) = next,
+                Err(_) => {
                     reached = false;
                     break;
                 }

@@ -391,7 +391,7 @@ mod tests {
         let sun = crate::light::Sun::new(Vec3::new(0.0, 0.0, -1.0), Vec3::ONE, 0.0).unwrap();
         let camera =
             crate::camera::Camera::new(Vec3::new(0.5, 0.5, -3.0), Vec3::splat(0.5), Vec3::Y, 30.0, 4, 4).unwrap();
-        let scene = Scene { medium, sun: Some(sun), sky: crate::light::Sky { radiance: Vec3::ZERO }, camera };
+        let scene = Scene { medium, sun: Some(sun), sky: crate::light::Sky::default(), camera };
         (scene, sun)
     }
 

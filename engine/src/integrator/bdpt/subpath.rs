@@ -144,7 +144,7 @@ pub(super) fn light_path(b: &BdptSettings, scene: &Scene, sun: &Sun, rng: &mut R
         if !roulette(lp.len as u32, &mut beta, rng) {
             return lp;
         }
-        let Some(next) = medium.scatter(x, wo, rng) else { return lp };
+        let Ok(next) = medium.scatter(x, wo, rng) else { return lp };
         (x, wo) = next;
         beta *= medium.albedo();
     }

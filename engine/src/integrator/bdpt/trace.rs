@@ -51,7 +51,7 @@ pub fn trace_strategies(
     let max_bdpt_order = prediction.map_or(max_order, |pr| max_order.min(2 * pr.segments));
     let t = match medium.sample_free_flight(o, d, f32::INFINITY, rng) {
         FreeFlight::Escaped => {
-            sink(Contribution { order: 0, strategy: Strategy::Direct, value: scene.sky.radiance, weight: 1.0 });
+            sink(Contribution { order: 0, strategy: Strategy::Direct, value: scene.sky.radiance(d), weight: 1.0 });
             return;
         }
         FreeFlight::Collision { t } => t,
@@ -136,11 +136,15 @@ pub fn trace_strategies(
         if !roulette(order, &mut beta, rng) {
             return;
         }
-        let Some(next) = medium.scatter(x, wo, rng) else {
-            if !scene.sky.is_black() {
-                sink(Contribution { order, strategy: Strategy::Sky, value: scene.sky.radiance * beta, weight: 1.0 });
+        let next = match medium.scatter(x, wo, rng) {
+            Ok(next) => next,
+            Err(wi) => {
+                if !scene.sky.is_black() {
+                    let value = scene.sky.radiance(wi) * beta;
+                    sink(Contribution { order, strategy: Strategy::Sky, value, weight: 1.0 });
+                }
+                return;
             }
-            return;
         };
         (x, wo) = next;
         order += 1;
