@@ -223,6 +223,25 @@ fn radiance_of(colour: [f32; 3], intensity: f32) -> crate::scene::Rgb {
     }
 }
 
+/// A colour button and an intensity slider for a radiance of at most `max`; the
+/// new radiance when either changed. `labels`: the slider's text and the colour's
+/// tooltip.
+fn colour_row(
+    ui: &mut egui::Ui,
+    value: crate::scene::Rgb,
+    max: f32,
+    labels: (&str, &str),
+    tip: &str,
+) -> Option<crate::scene::Rgb> {
+    let (mut colour, mut intensity) = colour_and_intensity(value);
+    let mut changed = false;
+    ui.horizontal(|ui| {
+        changed |= egui::color_picker::color_edit_button_rgb(ui, &mut colour).on_hover_text(labels.1).changed();
+        changed |= ui.add(egui::Slider::new(&mut intensity, 0.0..=max).text(labels.0)).on_hover_text(tip).changed();
+    });
+    changed.then(|| radiance_of(colour, intensity))
+}
+
 /// A file name from the wall clock, UTC: `nimbus-YYYYMMDD-HHMMSS`.
 fn timestamp_name() -> String {
     let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
@@ -1020,55 +1039,37 @@ impl NimbusApp {
             if sun_changed {
                 self.apply_sun();
             }
-            let (mut colour, mut intensity) = colour_and_intensity(self.scene.sun.radiance);
-            let mut changed = false;
-            ui.horizontal(|ui| {
-                changed |= egui::color_picker::color_edit_button_rgb(ui, &mut colour)
-                    .on_hover_text("the sun's colour")
-                    .changed();
-                changed |= ui
-                    .add(egui::Slider::new(&mut intensity, 0.0..=10.0).text("sun irradiance"))
-                    .on_hover_text(
-                        "irradiance on a surface facing the sun (linear, scene units); exposure scales the image \
-                         instead",
-                    )
-                    .changed();
-            });
-            if changed {
-                self.scene.sun.radiance = radiance_of(colour, intensity);
+            if let Some(r) = colour_row(
+                ui,
+                self.scene.sun.radiance,
+                10.0,
+                ("sun irradiance", "the sun's colour"),
+                "irradiance on a surface facing the sun (linear, scene units); exposure scales the image instead",
+            ) {
+                self.scene.sun.radiance = r;
             }
             ui.add(
                 egui::Slider::new(&mut self.scene.sun.angular_radius_deg, 0.0..=10.0).text("sun radius").suffix("°"),
             )
             .on_hover_text("angular radius of the sun's disc: 0 is a point sun (hard shadows), the real sun is 0.27°");
-            let (mut colour, mut intensity) = colour_and_intensity(self.scene.sky.radiance);
-            let mut changed = false;
-            ui.horizontal(|ui| {
-                changed |= egui::color_picker::color_edit_button_rgb(ui, &mut colour)
-                    .on_hover_text("the sky's colour")
-                    .changed();
-                changed |= ui
-                    .add(egui::Slider::new(&mut intensity, 0.0..=2.0).text("sky radiance"))
-                    .on_hover_text("radiance of a uniform sky all around (0: black, the sun alone)")
-                    .changed();
-            });
-            if changed {
-                self.scene.sky.radiance = radiance_of(colour, intensity);
-            }
             let sky = &mut self.scene.sky;
-            let (mut colour, mut intensity) = colour_and_intensity(sky.horizon.unwrap_or(sky.radiance));
-            let mut changed = false;
-            ui.horizontal(|ui| {
-                changed |= egui::color_picker::color_edit_button_rgb(ui, &mut colour)
-                    .on_hover_text("the sky's colour at the horizon")
-                    .changed();
-                changed |= ui
-                    .add(egui::Slider::new(&mut intensity, 0.0..=2.0).text("horizon radiance"))
-                    .on_hover_text("the sky runs from this at the horizon to the sky radiance above at the zenith")
-                    .changed();
-            });
-            if changed {
-                sky.horizon = Some(radiance_of(colour, intensity));
+            if let Some(r) = colour_row(
+                ui,
+                sky.radiance,
+                2.0,
+                ("sky radiance", "the sky's colour (at the zenith when the horizon differs)"),
+                "radiance of the sky overhead, and all around unless the horizon is set (0: black, the sun alone)",
+            ) {
+                sky.radiance = r;
+            }
+            if let Some(r) = colour_row(
+                ui,
+                sky.horizon.unwrap_or(sky.radiance),
+                2.0,
+                ("horizon radiance", "the sky's colour at the horizon"),
+                "the sky runs from this at the horizon to the sky radiance above at the zenith",
+            ) {
+                sky.horizon = Some(r);
             }
             let mut ground = sky.ground_albedo.is_some();
             ui.horizontal(|ui| {
