@@ -70,6 +70,19 @@ impl Rgb {
     }
 }
 
+/// The unit vector toward a sun at `elevation_deg` above the horizon and
+/// `azimuth_deg` around the vertical (0 = +z, 90 = +x).
+pub fn sun_vector(elevation_deg: f32, azimuth_deg: f32) -> Vec3 {
+    let (el, az) = (elevation_deg.to_radians(), azimuth_deg.to_radians());
+    Vec3::new(el.cos() * az.sin(), el.sin(), el.cos() * az.cos())
+}
+
+/// (elevation, azimuth) in degrees of the direction `to_sun`, azimuth in [0, 360).
+pub fn sun_angles_of(to_sun: Vec3) -> (f32, f32) {
+    let v = to_sun.normalize_or(Vec3::Y);
+    (v.y.clamp(-1.0, 1.0).asin().to_degrees(), v.x.atan2(v.z).to_degrees().rem_euclid(360.0))
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneFile {

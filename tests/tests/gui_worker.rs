@@ -36,7 +36,10 @@ fn worker_renders_restarts_and_reports_errors() {
     assert!(first.samples_per_sec > 0.0 && first.noise.is_finite());
 
     // A change: the new generation replaces the old and starts from zero samples.
-    let g2 = worker.render(&small_scene(30.0), true);
+    // (Coarse while dragging: 64^3 is built at 48^3, and the image says so.)
+    let mut s2 = small_scene(30.0);
+    s2.grid.resolution = 64;
+    let g2 = worker.render(&s2, true);
     assert!(g2 > g1);
     wait_for(|| worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g2));
     let second = worker.mailbox.lock().unwrap().latest.clone().unwrap();
@@ -111,26 +114,27 @@ fn shown_until_handoff(worker: &WorkerHandle, g: u64) -> Vec<(Option<&'static st
     }
 }
 
-/// After a change the instant preview comes first (the octaves, then the learned one),
+/// After a change the instant preview comes first (the learned one on a coarse
+/// lattice, then at its own resolution),
 /// and the scene's own render takes over only once its noise is below the hand-off
 /// level: no image between the change and the preview, and no grainy one after it.
-/// While a slider is dragged, the octaves alone stand in; in compare mode, nothing.
+/// While a slider is dragged, the coarse one alone stands in; in compare mode, nothing.
 #[test]
 fn the_preview_stands_in_until_the_render_is_clean() {
-    use app::gui::worker::HANDOFF_NOISE;
+    use app::gui::worker::{FIRST_LOOK, HANDOFF_NOISE};
     let worker = WorkerHandle::start(|| {});
     let mut s = small_scene(10.0);
     s.render.mode = "predict".into();
     let seen = shown_until_handoff(&worker, worker.render(&s, false));
     let order: Vec<_> = seen.iter().map(|(w, _)| *w).collect();
-    assert_eq!(order, [Some("octaves"), Some("learned"), None], "{seen:?}");
+    assert_eq!(order, [Some(FIRST_LOOK), Some("learned"), None], "{seen:?}");
     let (_, handed) = seen.last().unwrap();
     assert!(*handed <= HANDOFF_NOISE, "the render took over at {handed} noise");
 
     s.medium.rho = 12.0;
     let seen = shown_until_handoff(&worker, worker.render(&s, true));
     let order: Vec<_> = seen.iter().map(|(w, _)| *w).collect();
-    assert_eq!(order, [Some("octaves"), None], "{seen:?}");
+    assert_eq!(order, [Some(FIRST_LOOK), None], "{seen:?}");
 
     let g = worker.render_with(&s, false, false, true, app::gui::worker::RenderTarget::Unlimited);
     wait_for(|| worker.mailbox.lock().unwrap().latest.as_ref().is_some_and(|p| p.generation == g));

@@ -15,6 +15,26 @@ use engine::{Buffer, Film};
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, TryRecvError};
 
+/// What the comparison's relative bias means against its noise floor (what noise
+/// alone would show): within noise below 1.5 times the floor, else significant, with
+/// the part noise does not explain, sqrt(bias^2 - floor^2).
+pub fn bias_verdict(rel: f64, floor: f64) -> String {
+    if !(rel.is_finite() && floor.is_finite()) {
+        return "relative bias: not known yet".into();
+    }
+    if rel <= 1.5 * floor {
+        format!("relative bias {:.1} %: within noise (noise alone shows {:.1} %)", 100.0 * rel, 100.0 * floor)
+    } else {
+        let excess = (rel * rel - floor * floor).max(0.0).sqrt();
+        format!(
+            "relative bias significant: about {:.1} % (measured {:.1} %, noise {:.1} %)",
+            100.0 * excess,
+            100.0 * rel,
+            100.0 * floor
+        )
+    }
+}
+
 /// The panels, in order.
 pub const PANELS: [&str; 4] =
     ["low orders 1 .. k-1", "predicted high orders", "reference high orders", "error |predicted - reference| (high)"];
@@ -162,7 +182,7 @@ impl CompareView {
         ui.heading("Compare");
         match self.bias {
             Some((rel, floor)) => {
-                ui.label(super::bias_verdict(rel, floor)).on_hover_text(
+                ui.label(bias_verdict(rel, floor)).on_hover_text(
                     "mean |prediction - reference| over 16 x 16 pixel blocks, divided by the reference's mean \
                      (docs/conventions.md); noise in either image alone shows a few percent, so the number is \
                      significant only well above that floor, which falls as both renders accumulate",

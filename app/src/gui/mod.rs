@@ -9,7 +9,8 @@ pub mod modeler_panel;
 pub mod worker;
 
 use crate::output::ToneMap;
-use crate::scene::{CameraPreset, SceneFile, default_up};
+use crate::scene::{CameraPreset, SceneFile, default_up, sun_angles_of, sun_vector};
+pub use compare::bias_verdict;
 use compare::{CompareView, Layout};
 use eframe::egui;
 use engine::Buffer;
@@ -35,39 +36,6 @@ pub fn default_scene() -> SceneFile {
     s.camera.preset = None;
     s.camera.position = Some([0.0, d * pitch.sin(), d * pitch.cos()]);
     s
-}
-
-/// The unit vector toward a sun at `elevation_deg` above the horizon and
-/// `azimuth_deg` around the vertical (0 = +z, 90 = +x).
-pub fn sun_vector(elevation_deg: f32, azimuth_deg: f32) -> Vec3 {
-    let (el, az) = (elevation_deg.to_radians(), azimuth_deg.to_radians());
-    Vec3::new(el.cos() * az.sin(), el.sin(), el.cos() * az.cos())
-}
-
-/// (elevation, azimuth) in degrees of the direction `to_sun`, azimuth in [0, 360).
-pub fn sun_angles_of(to_sun: Vec3) -> (f32, f32) {
-    let v = to_sun.normalize_or(Vec3::Y);
-    (v.y.clamp(-1.0, 1.0).asin().to_degrees(), v.x.atan2(v.z).to_degrees().rem_euclid(360.0))
-}
-
-/// What the comparison's relative bias means against its noise floor (what noise
-/// alone would show): within noise below 1.5 times the floor, else significant, with
-/// the part noise does not explain, sqrt(bias^2 - floor^2).
-pub fn bias_verdict(rel: f64, floor: f64) -> String {
-    if !(rel.is_finite() && floor.is_finite()) {
-        return "relative bias: not known yet".into();
-    }
-    if rel <= 1.5 * floor {
-        format!("relative bias {:.1} %: within noise (noise alone shows {:.1} %)", 100.0 * rel, 100.0 * floor)
-    } else {
-        let excess = (rel * rel - floor * floor).max(0.0).sqrt();
-        format!(
-            "relative bias significant: about {:.1} % (measured {:.1} %, noise {:.1} %)",
-            100.0 * excess,
-            100.0 * rel,
-            100.0 * floor
-        )
-    }
 }
 
 /// Orbit camera state: angles around the target, in degrees, and distance.

@@ -334,7 +334,7 @@ pub fn thumbnail(params: &CloudParams) -> Option<Vec<u8>> {
     )
     .ok()?;
     s.grid.params = Some(params.clone());
-    s.sun.direction = (-crate::gui::sun_vector(35.0, 50.0)).to_array();
+    s.sun.direction = (-crate::scene::sun_vector(35.0, 50.0)).to_array();
     s.camera.preset = None;
     s.camera.position = Some([0.0, 0.45, 2.6]);
     (s.camera.width, s.camera.height) = (THUMB, THUMB);
