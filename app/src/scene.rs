@@ -817,11 +817,14 @@ impl SceneFile {
         // 64, the field's own default; 96 for the window's coarse 24).
         let sun_nodes = (4 * max_nodes).clamp(2, SunTransmittance::DEFAULT_MAX_NODES);
         let key = PredictorKey { model: None, ..PredictorKey::new(self, scene, sun_nodes) };
-        let field = match &cache.sun {
-            Some((k, f)) if *k == key => f.clone(),
-            _ => {
+        let field = match cache.sun.iter().position(|(k, _)| *k == key) {
+            Some(i) => cache.sun[i].1.clone(),
+            None => {
                 let f = Arc::new(SunTransmittance::build(&scene.medium, sun, sun_nodes));
-                cache.sun = Some((key, f.clone()));
+                // Two sizes per change in the window (the first look's, the full
+                // preview's): keep both.
+                cache.sun.insert(0, (key, f.clone()));
+                cache.sun.truncate(2);
                 f
             }
         };
@@ -922,7 +925,7 @@ pub struct PredictorCache {
     bound: Vec<(PredictorKey, Arc<dyn InScatterPredictor>)>,
     p2p: Option<(PredictorKey, Arc<BoundP2pModel>)>,
     /// The preview's sun transmittance (keyed by cloud, rho and sun; no model).
-    sun: Option<(PredictorKey, Arc<SunTransmittance>)>,
+    sun: Vec<(PredictorKey, Arc<SunTransmittance>)>,
 }
 
 impl PredictorCache {

@@ -1,10 +1,11 @@
-//! Lights: a directional sun (optionally a soft disk) and a constant sky.
+//! Lights: a directional sun (optionally a soft disk) and a sky.
 //!
 //! Parameters ([`Sun::new`]): `direction` the direction the light travels, any
 //! non-zero finite vector (normalized); `radiance` per channel, finite and >= 0
 //! (default in scene files 1, the thesis's L_L); `angular_radius` in radians,
-//! [0, 0.5] (0: a delta light). [`Sky`]: a constant `radiance` per channel (black by
-//! default), seen by paths that leave the medium.
+//! [0, 0.5] (0: a delta light). [`Sky`]: radiance per channel at the zenith, the
+//! horizon and the ground (black by default; all three equal: uniform), seen by paths
+//! that leave the medium.
 
 use crate::sampling::{local_to_world, sample_uniform_cone};
 use glam::{Vec2, Vec3};

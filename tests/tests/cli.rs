@@ -296,4 +296,18 @@ fn turntable_writes_frames_resumes_and_refuses_other_settings() {
     .unwrap();
     assert_eq!(t["temporal_error"].as_f64(), Some(0.0));
     assert_eq!(t["frames"].as_u64(), Some(4));
+
+    // A stopped turntable is not scored, and frames without a manifest are not
+    // adopted.
+    std::fs::remove_file(frame(3, "exr")).unwrap();
+    let e = app::lab::eval::temporal::eval_temporal(&app::lab::eval::temporal::EvalTemporalArgs {
+        frames: vec![out.clone()],
+        reference: None,
+    })
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("3 of its 4 frames"), "{e}");
+    std::fs::remove_file(out.join("turntable.json")).unwrap();
+    let e = nimbus(&args).unwrap_err().to_string();
+    assert!(e.contains("no turntable.json"), "{e}");
 }

@@ -3,7 +3,8 @@
 //! (every buffer) and PNG, then an animated PNG of them all. Resumable: frames
 //! already written are kept, and a run into a folder holding another turntable's
 //! frames is refused rather than mixing the two. Every mode of `nimbus render`
-//! (path tracing, prediction at bounce k, the instant preview).
+//! (path tracing, prediction at bounce k, the instant preview). A folder with frames
+//! but no manifest is refused too.
 //!
 //! Every frame uses the scene's seed, so with a sample count (not a time budget)
 //! the frames are the same for any thread count, and the noise pattern is the same
@@ -87,6 +88,38 @@ struct Manifest {
     degrees: f32,
     spp: Option<u32>,
     time_per_frame: Option<f64>,
+    /// How the PNGs and the animation are tone-mapped.
+    exposure: f32,
+    tonemap: String,
+    /// Fingerprint of the model's bytes (weights and sidecar), when the mode uses one:
+    /// a model retrained into the same file is another turntable.
+    model: Option<String>,
+}
+
+/// The fingerprint of the model `file`'s mode uses (None for path tracing and the
+/// octave preview).
+fn model_fingerprint(file: &SceneFile) -> Result<Option<String>> {
+    let uses_model =
+        file.render.mode == "predict" || (file.render.mode == "preview" && file.render.preview == "learned");
+    if !uses_model {
+        return Ok(None);
+    }
+    let fp = if file.render.mode == "predict" && file.render.integrator == "bdpt" {
+        match file.p2p_model_path() {
+            Some(p) => models::fingerprint::model_file_fingerprint(&p)?,
+            None => models::p2p::model::shipped_fingerprint(),
+        }
+    } else {
+        match file.model_path() {
+            Some(p) => models::fingerprint::model_file_fingerprint(&p)?,
+            None => {
+                let kind = models::prediction::PredictorKind::parse(&file.render.predictor)
+                    .context("render.predictor: choose global or cloud")?;
+                models::prediction::shipped_fingerprint(kind)
+            }
+        }
+    };
+    Ok(Some(format!("{fp:016x}")))
 }
 
 /// The name of frame `i`'s files, without extension.
@@ -191,9 +224,25 @@ pub fn turntable(args: TurntableArgs) -> Result<()> {
         degrees: args.degrees,
         spp: args.spp.or((args.time_per_frame.is_none()).then_some(64)),
         time_per_frame: args.time_per_frame,
+        exposure: args.exposure,
+        tonemap: args.tonemap.clone(),
+        model: model_fingerprint(&file)?,
     };
     let manifest_path = args.out.join("turntable.json");
-    if manifest_path.exists() {
+    let any_frame = std::fs::read_dir(&args.out)
+        .with_context(|| format!("cannot list {}", args.out.display()))?
+        .flatten()
+        .any(|e| e.file_name().to_string_lossy().starts_with("frame-"));
+    if any_frame && !manifest_path.exists() {
+        bail!(
+            "{} holds frames but no turntable.json: they are not known to be this turntable's; use another --out \
+             or remove them",
+            args.out.display()
+        );
+    }
+    // Without frames there is nothing to mix up: a manifest left by a run that
+    // stopped before its first frame is replaced.
+    if manifest_path.exists() && any_frame {
         let text = std::fs::read_to_string(&manifest_path)
             .with_context(|| format!("cannot read {}", manifest_path.display()))?;
         let old: Manifest = serde_json::from_str(&text)

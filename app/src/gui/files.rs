@@ -82,7 +82,12 @@ const NO_DIALOG_WITHIN: Duration = Duration::from_millis(250);
 
 /// The dialog in flight: the desktop's, on its thread, or the window's own.
 pub enum Dialog {
-    Native { request: Request, asked: Instant, answer: Receiver<Option<PathBuf>> },
+    /// The desktop's dialog on its thread; the answer comes with how long the
+    /// dialog took, timed on that thread (not when the UI polls).
+    Native {
+        request: Request,
+        answer: Receiver<(Option<PathBuf>, Duration)>,
+    },
     Drawn(DrawnDialog),
 }
 
@@ -94,6 +99,7 @@ impl Dialog {
             let (tx, rx) = std::sync::mpsc::channel();
             let r = request.clone();
             let spawned = std::thread::Builder::new().name("nimbus-file-dialog".into()).spawn(move || {
+                let asked = Instant::now();
                 let mut d = rfd::FileDialog::new().set_title(&r.title);
                 if !r.filter.1.is_empty() {
                     d = d.add_filter(&r.filter.0, &r.filter.1);
@@ -103,10 +109,10 @@ impl Dialog {
                     Kind::Save => d.set_file_name(&r.file_name).save_file(),
                     Kind::Folder => d.pick_folder(),
                 };
-                let _ = tx.send(picked);
+                let _ = tx.send((picked, asked.elapsed()));
             });
             if spawned.is_ok() {
-                return Dialog::Native { request, asked: Instant::now(), answer: rx };
+                return Dialog::Native { request, answer: rx };
             }
         }
         Dialog::Drawn(DrawnDialog::new(request, dir))
@@ -117,14 +123,20 @@ impl Dialog {
     /// cleared, so the next dialog goes there directly).
     pub fn show(&mut self, ctx: &egui::Context, native_works: &mut bool, dir: &Path) -> Outcome {
         match self {
-            Dialog::Native { request, asked, answer } => match answer.try_recv() {
-                Ok(Some(path)) => Outcome::Picked(request.with_extension(path)),
-                Ok(None) | Err(TryRecvError::Disconnected) if asked.elapsed() < NO_DIALOG_WITHIN => {
+            Dialog::Native { request, answer } => match answer.try_recv() {
+                Ok((Some(path), _)) => Outcome::Picked(request.with_extension(path)),
+                // Nothing at once, or the thread gone: the portal could not show it.
+                Ok((None, took)) if took < NO_DIALOG_WITHIN => {
                     *native_works = false;
                     *self = Dialog::Drawn(DrawnDialog::new(request.clone(), dir));
                     Outcome::Pending
                 }
-                Ok(None) | Err(TryRecvError::Disconnected) => Outcome::Cancelled,
+                Err(TryRecvError::Disconnected) => {
+                    *native_works = false;
+                    *self = Dialog::Drawn(DrawnDialog::new(request.clone(), dir));
+                    Outcome::Pending
+                }
+                Ok((None, _)) => Outcome::Cancelled,
                 Err(TryRecvError::Empty) => {
                     ctx.request_repaint_after(Duration::from_millis(50));
                     Outcome::Pending
@@ -245,7 +257,9 @@ impl DrawnDialog {
                             self.name = name.clone();
                         }
                     }
-                    if r.double_clicked() && !*is_dir {
+                    // A double-click opens; when saving it only fills in the name, so
+                    // replacing a file always goes through the notice below.
+                    if r.double_clicked() && !*is_dir && self.request.kind == Kind::Open {
                         self.name = name.clone();
                         if let Ok(p) = self.choice() {
                             outcome = Outcome::Picked(p);
@@ -310,21 +324,22 @@ mod tests {
         let ctx = egui::Context::default();
         let req = Request::new(Kind::Open, "Open", "Nimbus scene", &["toml"], "");
         let (tx, rx) = std::sync::mpsc::channel();
-        tx.send(None).unwrap();
-        let mut d = Dialog::Native { request: req.clone(), asked: Instant::now(), answer: rx };
+        tx.send((None, Duration::from_millis(3))).unwrap();
+        let mut d = Dialog::Native { request: req.clone(), answer: rx };
         let mut native = true;
+        // However late the UI looks: the answer's own timing decides.
+        std::thread::sleep(2 * NO_DIALOG_WITHIN);
         assert_eq!(d.show(&ctx, &mut native, Path::new(".")), Outcome::Pending);
         assert!(matches!(d, Dialog::Drawn(_)) && !native);
         let (tx, rx) = std::sync::mpsc::channel();
-        tx.send(None).unwrap();
-        let asked = Instant::now() - 2 * NO_DIALOG_WITHIN;
-        let mut d = Dialog::Native { request: req.clone(), asked, answer: rx };
+        tx.send((None, 2 * NO_DIALOG_WITHIN)).unwrap();
+        let mut d = Dialog::Native { request: req.clone(), answer: rx };
         let mut native = true;
         assert_eq!(d.show(&ctx, &mut native, Path::new(".")), Outcome::Cancelled);
         assert!(native);
         let (tx, rx) = std::sync::mpsc::channel();
-        tx.send(Some(PathBuf::from("/x/s.toml"))).unwrap();
-        let mut d = Dialog::Native { request: req, asked: Instant::now(), answer: rx };
+        tx.send((Some(PathBuf::from("/x/s.toml")), Duration::from_secs(3))).unwrap();
+        let mut d = Dialog::Native { request: req, answer: rx };
         assert_eq!(d.show(&ctx, &mut native, Path::new(".")), Outcome::Picked(PathBuf::from("/x/s.toml")));
     }
 

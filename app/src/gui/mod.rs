@@ -191,6 +191,16 @@ fn radiance_of(colour: [f32; 3], intensity: f32) -> crate::scene::Rgb {
     }
 }
 
+/// A slider that keeps a value from a file outside its range as it is (egui's
+/// default clamps it, which would rewrite the scene the moment the panel is drawn);
+/// only edits made with it stay in the range.
+pub(crate) fn slider<'a, N: egui::emath::Numeric>(
+    value: &'a mut N,
+    range: std::ops::RangeInclusive<N>,
+) -> egui::Slider<'a> {
+    egui::Slider::new(value, range).clamping(egui::SliderClamping::Edits)
+}
+
 /// A colour button and an intensity slider for a radiance of at most `max`; the
 /// new radiance when either changed. `labels`: the slider's text and the colour's
 /// tooltip.
@@ -205,7 +215,7 @@ fn colour_row(
     let mut changed = false;
     ui.horizontal(|ui| {
         changed |= egui::color_picker::color_edit_button_rgb(ui, &mut colour).on_hover_text(labels.1).changed();
-        changed |= ui.add(egui::Slider::new(&mut intensity, 0.0..=max).text(labels.0)).on_hover_text(tip).changed();
+        changed |= ui.add(slider(&mut intensity, 0.0..=max).text(labels.0)).on_hover_text(tip).changed();
     });
     changed.then(|| radiance_of(colour, intensity))
 }
@@ -332,6 +342,8 @@ impl History {
 }
 
 const STORAGE_SCENE: &str = "nimbus.scene";
+/// The status bar's height: three rows (figures, the worker's message, the window's).
+const STATUS_HEIGHT: f32 = 64.0;
 const STORAGE_RECENT: &str = "nimbus.recent";
 /// Recent files kept in the File menu.
 const RECENT_MAX: usize = 8;
@@ -366,7 +378,7 @@ pub struct NimbusApp {
     drag: ViewDrag,
     /// The viewport's area in the last frame.
     view_rect: egui::Rect,
-    /// Where the image was drawn in the last frame (single view).
+    /// Where the scene's own image was drawn in the last frame.
     image_rect: Option<egui::Rect>,
     /// Physical pixels per point in the last frame.
     pixels_per_point: f32,
@@ -954,7 +966,7 @@ impl NimbusApp {
                     }
                 }
             });
-            ui.add(egui::Slider::new(&mut self.scene.grid.resolution, 32..=256).text("voxels per axis")).on_hover_text(
+            ui.add(slider(&mut self.scene.grid.resolution, 32..=256).text("voxels per axis")).on_hover_text(
                 "the grid the cloud is built on: more voxels keep finer detail and cost memory and build time \
                      (48 while a cloud slider is dragged)",
             );
@@ -967,11 +979,11 @@ impl NimbusApp {
             ui.separator();
             ui.heading("Medium");
             let m = &mut self.scene.medium;
-            ui.add(egui::Slider::new(&mut m.rho, 0.5..=400.0).logarithmic(true).text("density rho")).on_hover_text(
+            ui.add(slider(&mut m.rho, 0.5..=400.0).logarithmic(true).text("density rho")).on_hover_text(
                 "extinction at full density, per box width: light travels 1/rho of the cloud's box between \
                  collisions (rho 40: 1/40 of the box); higher is denser, brighter edges, darker core",
             );
-            ui.add(egui::Slider::new(&mut m.albedo, 0.0..=1.0).text("albedo")).on_hover_text(
+            ui.add(slider(&mut m.albedo, 0.0..=1.0).text("albedo")).on_hover_text(
                 "the fraction of light scattered at each collision, the rest absorbed: 1 for water clouds, lower \
                  for smoke",
             );
@@ -987,7 +999,7 @@ impl NimbusApp {
                 }
             });
             if m.phase == "hg" {
-                ui.add(egui::Slider::new(&mut m.g, -0.95..=0.95).text("anisotropy g")).on_hover_text(
+                ui.add(slider(&mut m.g, -0.95..=0.95).text("anisotropy g")).on_hover_text(
                     "mean cosine of the scattering angle: 0 scatters evenly, toward 1 keeps light going forward \
                      (silver lining when backlit), negative sends it back",
                 );
@@ -996,11 +1008,11 @@ impl NimbusApp {
             ui.separator();
             ui.heading("Light");
             let mut sun_changed = ui
-                .add(egui::Slider::new(&mut self.sun_elevation_deg, -89.0..=89.0).text("sun elevation").suffix("°"))
+                .add(slider(&mut self.sun_elevation_deg, -89.0..=89.0).text("sun elevation").suffix("°"))
                 .on_hover_text("degrees above the horizon; 90 is straight overhead")
                 .changed();
             sun_changed |= ui
-                .add(egui::Slider::new(&mut self.sun_azimuth_deg, 0.0..=360.0).text("sun azimuth").suffix("°"))
+                .add(slider(&mut self.sun_azimuth_deg, 0.0..=360.0).text("sun azimuth").suffix("°"))
                 .on_hover_text("degrees around the vertical, 0 toward +z, 90 toward +x")
                 .changed();
             sun_changed |= self.sky_dome(ui);
@@ -1016,10 +1028,10 @@ impl NimbusApp {
             ) {
                 self.scene.sun.radiance = r;
             }
-            ui.add(
-                egui::Slider::new(&mut self.scene.sun.angular_radius_deg, 0.0..=10.0).text("sun radius").suffix("°"),
-            )
-            .on_hover_text("angular radius of the sun's disc: 0 is a point sun (hard shadows), the real sun is 0.27°");
+            ui.add(slider(&mut self.scene.sun.angular_radius_deg, 0.0..=10.0).text("sun radius").suffix("°"))
+                .on_hover_text(
+                    "angular radius of the sun's disc: 0 is a point sun (hard shadows), the real sun is 0.27°",
+                );
             let sky = &mut self.scene.sky;
             if let Some(r) = colour_row(
                 ui,
@@ -1047,7 +1059,7 @@ impl NimbusApp {
                 );
                 let mut a = sky.ground_albedo.unwrap_or(0.3);
                 if ground {
-                    ui.add(egui::Slider::new(&mut a, 0.0..=1.0).text("ground albedo"))
+                    ui.add(slider(&mut a, 0.0..=1.0).text("ground albedo"))
                         .on_hover_text("the fraction of light the ground reflects: grass 0.2, snow 0.8");
                 }
                 sky.ground_albedo = ground.then_some(a);
@@ -1071,9 +1083,9 @@ impl NimbusApp {
                     }
                 }
             });
-            ui.add(egui::Slider::new(&mut self.orbit.distance, 1.0..=10.0).text("distance"))
+            ui.add(slider(&mut self.orbit.distance, 1.0..=10.0).text("distance"))
                 .on_hover_text("from the cloud's centre, in box widths");
-            ui.add(egui::Slider::new(&mut self.scene.camera.fov_y_deg, 5.0..=90.0).text("field of view").suffix("°"))
+            ui.add(slider(&mut self.scene.camera.fov_y_deg, 5.0..=90.0).text("field of view").suffix("°"))
                 .on_hover_text("vertical angle the image covers");
             ui.label(
                 "Drag the image to orbit, scroll to zoom; Shift-drag or right-drag puts the sun under the pointer.",
@@ -1114,21 +1126,18 @@ impl NimbusApp {
             } else {
                 "the first scattering order counted as high (predicted in prediction mode)"
             };
-            ui.add(egui::Slider::new(&mut self.scene.k, 1..=8).text("k")).on_hover_text(k_tip);
+            ui.add(slider(&mut self.scene.k, 1..=8).text("k")).on_hover_text(k_tip);
             if self.scene.render.mode == "predict" {
-                ui.add(egui::Slider::new(&mut self.scene.render.p, 0.05..=1.0).text("prediction prob. p"))
+                ui.add(slider(&mut self.scene.render.p, 0.05..=1.0).text("prediction prob. p"))
                     .on_hover_text("the probability of predicting at vertex k instead of tracing on (thesis 5.4)");
                 if p2p {
-                    ui.add(egui::Slider::new(&mut self.scene.render.r, 0.0..=0.3).text("distance threshold r"))
-                        .on_hover_text(
-                            "end vertices closer than r (box widths) are joined by extending the subpaths, not \
+                    ui.add(slider(&mut self.scene.render.r, 0.0..=0.3).text("distance threshold r")).on_hover_text(
+                        "end vertices closer than r (box widths) are joined by extending the subpaths, not \
                              predicted",
-                        );
+                    );
                     let max_m = engine::integrator::bdpt::Prediction::MAX_CANDIDATES;
                     ui.add(
-                        egui::Slider::new(&mut self.scene.render.candidates, 1..=max_m)
-                            .logarithmic(true)
-                            .text("light candidates"),
+                        slider(&mut self.scene.render.candidates, 1..=max_m).logarithmic(true).text("light candidates"),
                     )
                     .on_hover_text(
                         "light subpaths offered to each camera end vertex, one chosen by resampling; 1 is the \
@@ -1137,7 +1146,7 @@ impl NimbusApp {
                     );
                     let max_n = engine::integrator::bdpt::Prediction::MAX_EXTENSION_SAMPLES;
                     ui.add(
-                        egui::Slider::new(&mut self.scene.render.extension_samples, 1..=max_n)
+                        slider(&mut self.scene.render.extension_samples, 1..=max_n)
                             .logarithmic(true)
                             .text("samples per close pair"),
                     )
@@ -1173,7 +1182,7 @@ impl NimbusApp {
                     ui.selectable_value(&mut self.view_buffer, b, b.name());
                 }
             });
-            ui.add(egui::Slider::new(&mut self.exposure, -4.0..=6.0).text("exposure").suffix(" stops"))
+            ui.add(slider(&mut self.exposure, -4.0..=6.0).text("exposure").suffix(" stops"))
                 .on_hover_text("brightens (positive) or darkens the view and the PNG; the EXR keeps radiance");
             ui.horizontal(|ui| {
                 ui.label("tone curve");
@@ -1223,7 +1232,7 @@ impl NimbusApp {
         );
         if fit {
             let mut scale = self.viewport_scale.unwrap_or(0.5) * 100.0;
-            ui.add(egui::Slider::new(&mut scale, 10.0..=100.0).text("resolution scale").suffix(" %"))
+            ui.add(slider(&mut scale, 10.0..=100.0).text("resolution scale").suffix(" %"))
                 .on_hover_text("of the viewport's pixels: lower renders faster");
             self.viewport_scale = Some(scale / 100.0);
             let (w, h) = self.render_size();
@@ -1249,9 +1258,13 @@ impl NimbusApp {
             let (w0, h0) = (cam.width, cam.height);
             let (mut w, mut h) = (w0, h0);
             ui.label("width");
-            let dw = ui.add(egui::DragValue::new(&mut w).range(16..=4096).suffix(" px")).changed();
+            let dw = ui
+                .add(egui::DragValue::new(&mut w).range(16..=4096).clamp_existing_to_range(false).suffix(" px"))
+                .changed();
             ui.label("height");
-            let dh = ui.add(egui::DragValue::new(&mut h).range(16..=4096).suffix(" px")).changed();
+            let dh = ui
+                .add(egui::DragValue::new(&mut h).range(16..=4096).clamp_existing_to_range(false).suffix(" px"))
+                .changed();
             ui.checkbox(&mut self.aspect_lock, "lock aspect");
             if self.aspect_lock && dw && w0 > 0 {
                 h = ((w as f64 * h0 as f64 / w0 as f64).round() as u32).clamp(16, 4096);
@@ -1334,6 +1347,7 @@ impl NimbusApp {
         let k = self.scene.k;
         // Where the wipe divider is on screen, when the wipe view is up.
         let mut divider: Option<(egui::Rect, f32)> = None;
+        let mut shown_at: Option<egui::Rect> = None;
         if side_by_side {
             if let Some(p) = &published {
                 self.compare_view.update(ui.ctx(), p, self.tone, self.exposure, self.view_buffer);
@@ -1350,6 +1364,7 @@ impl NimbusApp {
                     }
                     if let Some(t) = &self.texture {
                         paint_fitted(ui, t, right, &format!("prediction at bounce {k}"));
+                        shown_at = Some(fitted(t, right));
                     }
                 }
                 Layout::Wipe => {
@@ -1386,7 +1401,9 @@ impl NimbusApp {
         } else if let Some(t) = &self.texture {
             paint_fitted(ui, t, rect, "");
         }
-        self.image_rect = self.texture.as_ref().map(|t| fitted(t, rect));
+        // Where the scene's own image is (the right half side by side): the sun's
+        // marker and the sun drag map through it.
+        self.image_rect = shown_at.or_else(|| self.texture.as_ref().map(|t| fitted(t, rect)));
         self.paint_sun(ui, rect);
 
         // Dragging: the wipe divider when grabbed near it, the sun with Shift or the
@@ -1436,7 +1453,7 @@ impl NimbusApp {
     /// projection, or an arrow on the image's edge pointing toward it.
     fn paint_sun(&self, ui: &egui::Ui, rect: egui::Rect) {
         let Some(texture) = &self.texture else { return };
-        let shown = fitted(texture, rect);
+        let shown = self.image_rect.unwrap_or_else(|| fitted(texture, rect));
         let (_, right, up, _) = self.camera_basis();
         let to_sun = -Vec3::from_array(self.scene.sun.direction).normalize_or(Vec3::NEG_Y);
         let colour = egui::Color32::from_rgb(255, 214, 90);
@@ -1485,13 +1502,17 @@ impl NimbusApp {
                 ui.label("building the cloud…");
             }
         });
+        // One line each, cut with an ellipsis (the whole text on hover).
+        let line = |ui: &mut egui::Ui, colour: egui::Color32, text: &str| {
+            ui.add(egui::Label::new(egui::RichText::new(text).color(colour)).truncate()).on_hover_text(text);
+        };
         if let Some((_, e)) = &mb.error {
-            ui.colored_label(egui::Color32::from_rgb(255, 110, 90), e);
+            line(ui, egui::Color32::from_rgb(255, 110, 90), e);
         }
         if let Some((text, is_error)) = &self.message {
             let colour =
                 if *is_error { egui::Color32::from_rgb(255, 110, 90) } else { egui::Color32::from_rgb(140, 200, 140) };
-            ui.colored_label(colour, text);
+            line(ui, colour, text);
         }
     }
 
@@ -1534,7 +1555,9 @@ impl eframe::App for NimbusApp {
         let started = std::time::Instant::now();
         egui::Panel::top("menu").show(ui, |ui| self.menu(ui));
         egui::Panel::right("controls").resizable(true).default_size(350.0).show(ui, |ui| self.controls(ui));
-        egui::Panel::bottom("status").show(ui, |ui| self.status(ui));
+        // A fixed height: rows that come and go (a message, an error) must not resize
+        // the viewport, whose size the render follows.
+        egui::Panel::bottom("status").exact_size(STATUS_HEIGHT).show(ui, |ui| self.status(ui));
         if self.compare && self.scene.render.mode == "predict" {
             egui::Panel::left("buffers").resizable(true).default_size(200.0).show(ui, |ui| self.compare_view.panel(ui));
         }

@@ -7,6 +7,7 @@
 //! the rest (a coarse rebuild and the instant preview while a slider moves, the full
 //! cloud on release, undo through the history).
 
+use super::slider;
 use crate::scene::{GridDesc, SceneFile};
 use eframe::egui;
 use modeler::{CloudParams, Group, PARAMS};
@@ -219,11 +220,11 @@ impl ModelerPanel {
                     };
                     let r = if spec.integer {
                         let mut n = v as u32;
-                        let r = ui.add(egui::Slider::new(&mut n, spec.lo as u32..=spec.hi as u32).text(label));
+                        let r = ui.add(slider(&mut n, spec.lo as u32..=spec.hi as u32).text(label));
                         v = n as f32;
                         r
                     } else {
-                        ui.add(egui::Slider::new(&mut v, spec.lo..=spec.hi).logarithmic(spec.log).text(label))
+                        ui.add(slider(&mut v, spec.lo..=spec.hi).logarithmic(spec.log).text(label))
                     };
                     if r.on_hover_text(tip).changed() {
                         p.set(spec.name, v);

@@ -24,8 +24,9 @@ pub enum Command {
     Render {
         scene: Box<SceneFile>,
         coarse: bool,
-        /// The pointer is down (a slider or the view is being dragged): the octave
-        /// preview only, no learned one (its set-up would hold the next change up).
+        /// The pointer is down (a slider or the view is being dragged): the coarse
+        /// first look only, not the full learned preview (its lattice and depth field
+        /// would hold the next change up).
         dragging: bool,
         generation: u64,
         /// Also render the path-traced reference of the same scene and k, a pass of

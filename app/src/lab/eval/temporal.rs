@@ -22,8 +22,14 @@ pub struct EvalTemporalArgs {
     pub reference: Option<PathBuf>,
 }
 
-/// The full image of every frame of a turntable folder, in order.
+/// The full image of every frame of a turntable folder, in order; all the frames its
+/// manifest names must be there (a stopped turntable is not scored).
 pub fn read_frames(dir: &Path) -> Result<Vec<(u32, u32, Vec<f32>)>> {
+    let manifest = dir.join("turntable.json");
+    let expected = std::fs::read_to_string(&manifest)
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v["frames"].as_u64());
     let mut frames = Vec::new();
     for i in 0.. {
         let path = dir.join(format!("{}.exr", crate::cli::turntable::frame_stem(i)));
@@ -39,6 +45,16 @@ pub fn read_frames(dir: &Path) -> Result<Vec<(u32, u32, Vec<f32>)>> {
     }
     if frames.is_empty() {
         bail!("{}: no frames (frame-0000.exr ...)", dir.display());
+    }
+    if let Some(n) = expected.filter(|n| *n != frames.len() as u64) {
+        bail!(
+            "{}: {} of its {n} frames are there; finish the turntable (the same command resumes) first",
+            dir.display(),
+            frames.len()
+        );
+    }
+    if let Some(i) = frames.iter().position(|f| (f.0, f.1) != (frames[0].0, frames[0].1)) {
+        bail!("{}: frame {i} is not {} x {} like frame 0", dir.display(), frames[0].0, frames[0].1);
     }
     Ok(frames)
 }
@@ -56,7 +72,8 @@ pub fn temporal_error(frames: &[Vec<f32>], reference: &[Vec<f32>]) -> f64 {
     }
     let mean: f64 = reference.iter().flatten().map(|v| *v as f64).sum::<f64>()
         / reference.iter().map(|f| f.len()).sum::<usize>().max(1) as f64;
-    if n == 0 || mean <= 0.0 { 0.0 } else { err / n as f64 / mean }
+    // No light in the reference: the figure means nothing (not "no error").
+    if n == 0 || mean <= 0.0 { f64::NAN } else { err / n as f64 / mean }
 }
 
 /// The relative bias of docs/conventions.md on luminance, averaged over frames: per
@@ -128,10 +145,11 @@ pub fn eval_temporal(args: &EvalTemporalArgs) -> Result<serde_json::Value> {
     let images: Vec<Vec<Vec<f32>>> = runs.into_iter().map(|r| r.into_iter().map(|f| f.2).collect()).collect();
     let temporal = match &args.reference {
         Some(dir) => {
-            let reference: Vec<Vec<f32>> = read_frames(dir)?.into_iter().map(|f| f.2).collect();
-            if reference.len() != images[0].len() || reference[0].len() != images[0][0].len() {
+            let reference = read_frames(dir)?;
+            if reference.len() != images[0].len() || reference.iter().any(|f| (f.0, f.1) != size) {
                 bail!("{}: not the same frames as {} (count or size)", dir.display(), args.frames[0].display());
             }
+            let reference: Vec<Vec<f32>> = reference.into_iter().map(|f| f.2).collect();
             let temporal = images.iter().map(|r| temporal_error(r, &reference)).sum::<f64>() / images.len() as f64;
             let bias = images.iter().map(|r| block_bias(r, &reference, size.0 as usize, size.1 as usize)).sum::<f64>()
                 / images.len() as f64;
