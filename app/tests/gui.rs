@@ -314,8 +314,17 @@ fn save_render_target_and_status() {
     std::thread::sleep(std::time::Duration::from_millis(300));
     h.run_steps(2);
     assert_eq!(h.state().rendered().unwrap().1, 6, "the render went on after its target");
+    // A higher target goes on from the samples there (same render, not a new one).
+    let g = h.state().rendered().unwrap().0;
+    h.state_mut().set_target(app::gui::worker::RenderTarget::Spp(10));
+    step_until(&mut h, "the render did not go on to its new target", |a| {
+        a.rendered().is_some_and(|r| r.1 == 10) && a.status_line().is_some_and(|t| t.contains("done"))
+    });
+    assert_eq!(h.state().rendered().unwrap().0, g, "a new target restarted the render");
+    h.state_mut().set_target(app::gui::worker::RenderTarget::Spp(6));
+    h.run_steps(2);
     let status = h.state().status_line().unwrap();
-    assert!(status.starts_with("path tracing: 6 spp") && !status.contains("48^3"), "{status}");
+    assert!(status.starts_with("path tracing: 10 spp") && !status.contains("48^3"), "{status}");
 
     h.state_mut().set_render_dir(Some(tmp.path().join("renders")));
     h.state_mut().request(Action::SaveRender);

@@ -1529,8 +1529,12 @@ impl NimbusApp {
         let mut render = self.scene.clone();
         (render.camera.width, render.camera.height) = self.render_size();
         let changed = self.sent.as_ref().is_none_or(|(s, _, cmp, was_dragging)| {
-            *s != render || (*was_dragging && !dragging) || *cmp != self.compare || self.target != self.sent_target
+            *s != render || (*was_dragging && !dragging) || *cmp != self.compare
         });
+        // A new target alone goes to the render under way: its samples are kept.
+        if !changed && self.target != self.sent_target {
+            self.worker.set_target(self.target);
+        }
         self.sent_target = self.target;
         if !dragging {
             self.history.record(&self.scene);

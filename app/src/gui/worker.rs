@@ -35,6 +35,9 @@ pub enum Command {
         /// When the render stops.
         target: RenderTarget,
     },
+    /// A new target for the render under way (or finished): it goes on from the
+    /// samples it has, or stops at once if it is already there.
+    SetTarget(RenderTarget),
     Quit,
 }
 
@@ -119,6 +122,9 @@ struct Job {
     /// The cloud is built below the scene's resolution.
     coarse_grid: bool,
     target: RenderTarget,
+    /// When the target was reached: nothing more is rendered until a change or a new
+    /// target.
+    done: Option<Instant>,
     /// Prediction with a coarse depth field while the full one was not built yet:
     /// after the first pass the full field is built and the render starts over with it.
     upgrade: Option<Box<SceneFile>>,
@@ -231,8 +237,11 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
     loop {
         // Take the newest command; block only when idle.
         let mut next = None;
+        let mut retarget = None;
         loop {
-            let cmd = if job.is_some() || next.is_some() {
+            // A finished job waits like no job.
+            let busy = job.as_ref().is_some_and(|j| j.done.is_none());
+            let cmd = if busy || next.is_some() || retarget.is_some() {
                 match rx.try_recv() {
                     Ok(c) => c,
                     Err(_) => break,
@@ -247,6 +256,19 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             match cmd {
                 Command::Quit => return,
                 c @ Command::Render { .. } => next = Some(c),
+                Command::SetTarget(t) => retarget = Some(t),
+            }
+        }
+        if let (Some(t), Some(j), None) = (retarget, &mut job, &next) {
+            j.target = t;
+            if let Some(at) = j.done {
+                // Render time leaves the idle time out (a seconds target counts on);
+                // a target already reached keeps the render finished.
+                let secs = (at - j.start).as_secs_f64();
+                if t.progress(j.main.spp(), secs).is_none_or(|p| p < 1.0) {
+                    j.start += at.elapsed();
+                    j.done = None;
+                }
             }
         }
         if let Some(Command::Render { mut scene, coarse, dragging, generation, compare, target }) = next {
@@ -323,7 +345,17 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             match built {
                 Ok((r, reference, warning)) => {
                     mailbox.lock().unwrap().error = warning.map(|w| (generation, w));
-                    job = Some(Job { main: r, reference, generation, start, coarse_grid, target, upgrade, standing });
+                    job = Some(Job {
+                        main: r,
+                        reference,
+                        generation,
+                        start,
+                        coarse_grid,
+                        target,
+                        done: None,
+                        upgrade,
+                        standing,
+                    });
                 }
                 Err(e) => {
                     mailbox.lock().unwrap().error = Some((generation, e));
@@ -333,6 +365,9 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             continue;
         }
         let Some(j) = &mut job else { continue };
+        if j.done.is_some() {
+            continue;
+        }
         if control.generation() != j.generation {
             job = None; // a newer command is on its way
             continue;
@@ -422,7 +457,10 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
         mailbox.lock().unwrap().latest = Some(published);
         wake();
         if done {
-            job = None; // finished: idle until the next change
+            // Finished: idle until the next change or a new target, keeping the film.
+            if let Some(j) = &mut job {
+                j.done = Some(Instant::now());
+            }
         }
     }
 }
@@ -510,6 +548,11 @@ impl WorkerHandle {
     /// [`WorkerHandle::render`], with the cloud coarse (`coarse`) and the learned
     /// preview left out (`dragging`) as asked, the path-traced reference alongside
     /// when `compare` is set and the scene is in prediction mode, until `target`.
+    /// Changes the target of the render under way without starting it over.
+    pub fn set_target(&self, target: RenderTarget) {
+        let _ = self.tx.send(Command::SetTarget(target));
+    }
+
     pub fn render_with(
         &self,
         scene: &SceneFile,
