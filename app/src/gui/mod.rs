@@ -6,6 +6,7 @@
 pub mod compare;
 pub mod files;
 pub mod modeler_panel;
+pub mod widgets;
 pub mod worker;
 
 use crate::output::ToneMap;
@@ -15,6 +16,7 @@ use compare::{CompareView, Layout};
 use eframe::egui;
 use engine::Buffer;
 use glam::Vec3;
+use widgets::slider;
 use worker::{RenderTarget, WorkerHandle};
 
 /// The default sun of a fresh start, (elevation, azimuth) in degrees: a three-quarter
@@ -189,16 +191,6 @@ fn radiance_of(colour: [f32; 3], intensity: f32) -> crate::scene::Rgb {
     } else {
         crate::scene::Rgb::Rgb(colour.map(|c| c * intensity))
     }
-}
-
-/// A slider that keeps a value from a file outside its range as it is (egui's
-/// default clamps it, which would rewrite the scene the moment the panel is drawn);
-/// only edits made with it stay in the range.
-pub(crate) fn slider<'a, N: egui::emath::Numeric>(
-    value: &'a mut N,
-    range: std::ops::RangeInclusive<N>,
-) -> egui::Slider<'a> {
-    egui::Slider::new(value, range).clamping(egui::SliderClamping::Edits)
 }
 
 /// A colour button and an intensity slider for a radiance of at most `max`; the

@@ -7,7 +7,7 @@
 //! the rest (a coarse rebuild and the instant preview while a slider moves, the full
 //! cloud on release, undo through the history).
 
-use super::slider;
+use super::widgets::slider;
 use crate::scene::{GridDesc, SceneFile};
 use eframe::egui;
 use modeler::{CloudParams, Group, PARAMS};
