@@ -653,6 +653,18 @@ impl SceneFile {
             .map_err(|e| SceneError::Invalid(format!("camera: {e}")))
     }
 
+    /// Makes the scene's relative cloud file and model absolute (against the scene
+    /// file's folder), so they keep working once the scene lives elsewhere (in the
+    /// window's memory, in a turntable's manifest).
+    pub fn absolutize_paths(&mut self) {
+        if let (Some(f), Some(dir)) = (&self.grid.file, &self.base_dir) {
+            self.grid.file = Some(dir.join(f).display().to_string());
+        }
+        if let Some(m) = self.model_path() {
+            self.render.model = Some(m.display().to_string());
+        }
+    }
+
     /// The engine's sky: the gradient from the horizon to the zenith and the ground
     /// lit by the sun and the sky (docs/conventions.md).
     pub fn build_sky(&self) -> Result<Sky, SceneError> {

@@ -124,16 +124,7 @@ impl Film {
     /// variances of the mean / sum of the squared means), over pixels with light
     /// (luminance as the mean of the channels). Zero before any light arrives.
     pub fn relative_noise(&self, b: Buffer) -> f64 {
-        let (mean, var) = (self.mean(b), self.variance_of_mean(b));
-        let (mut num, mut den) = (0.0f64, 0.0f64);
-        for (m, v) in mean.iter().zip(&var) {
-            let l = (m[0] + m[1] + m[2]) as f64 / 3.0;
-            if l > 0.0 {
-                num += (v[0] + v[1] + v[2]) as f64 / 3.0;
-                den += l * l;
-            }
-        }
-        if den > 0.0 { (num / den).sqrt() } else { 0.0 }
+        self.relative_noise_over(b, |_| true)
     }
 
     /// [`Film::relative_noise`] over the cloud's pixels only: those that received
@@ -141,14 +132,18 @@ impl Film {
     /// no variance and would dilute the figure (with a bright sky an image whose cloud
     /// is grainy reads as a few percent). Zero before any light is scattered.
     pub fn cloud_noise(&self, b: Buffer) -> f64 {
-        let (mean, var) = (self.mean(b), self.variance_of_mean(b));
         let (low, high) = (&self.layers[Buffer::Low.index()].sum, &self.layers[Buffer::High.index()].sum);
+        self.relative_noise_over(b, |i| (0..3).map(|c| low[i][c] + high[i][c]).sum::<f64>() > 0.0)
+    }
+
+    /// The relative noise of `b` over the lit pixels `i` with `include(i)`.
+    fn relative_noise_over(&self, b: Buffer, include: impl Fn(usize) -> bool) -> f64 {
+        let (mean, var) = (self.mean(b), self.variance_of_mean(b));
         let (mut num, mut den) = (0.0f64, 0.0f64);
-        for i in 0..mean.len() {
-            let scattered: f64 = (0..3).map(|c| low[i][c] + high[i][c]).sum();
-            if scattered > 0.0 {
-                let l = (mean[i][0] + mean[i][1] + mean[i][2]) as f64 / 3.0;
-                num += (var[i][0] + var[i][1] + var[i][2]) as f64 / 3.0;
+        for (i, (m, v)) in mean.iter().zip(&var).enumerate() {
+            let l = (m[0] + m[1] + m[2]) as f64 / 3.0;
+            if l > 0.0 && include(i) {
+                num += (v[0] + v[1] + v[2]) as f64 / 3.0;
                 den += l * l;
             }
         }

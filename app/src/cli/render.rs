@@ -96,7 +96,7 @@ fn check_extension(flag: &str, path: &Path, ext: &str, what: &str) -> Result<()>
     Ok(())
 }
 
-fn parse_size(s: &str) -> Result<(u32, u32)> {
+pub(crate) fn parse_size(s: &str) -> Result<(u32, u32)> {
     let (w, h) = s.split_once('x').with_context(|| format!("--size {s}: expected WIDTHxHEIGHT, e.g. 512x512"))?;
     Ok((w.trim().parse().context("--size width")?, h.trim().parse().context("--size height")?))
 }

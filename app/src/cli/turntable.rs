@@ -187,9 +187,7 @@ pub fn turntable(args: TurntableArgs) -> Result<()> {
         file.seed = seed;
     }
     if let Some(size) = &args.size {
-        let (w, h) = size.split_once('x').with_context(|| format!("--size {size}: expected WIDTHxHEIGHT"))?;
-        (file.camera.width, file.camera.height) =
-            (w.trim().parse().context("--size width")?, h.trim().parse().context("--size height")?);
+        (file.camera.width, file.camera.height) = super::render::parse_size(size)?;
     }
     if let Some(k) = args.predict {
         (file.k, file.render.mode) = (k, "predict".into());
@@ -207,12 +205,7 @@ pub fn turntable(args: TurntableArgs) -> Result<()> {
         file.render.predictor = p.clone();
     }
     // Relative files of the scene keep working from the folder nimbus runs in.
-    if let (Some(f), Some(dir)) = (&file.grid.file, &file.base_dir) {
-        file.grid.file = Some(dir.join(f).display().to_string());
-    }
-    if let Some(m) = file.model_path() {
-        file.render.model = Some(m.display().to_string());
-    }
+    file.absolutize_paths();
     file.validate()?;
     let spp = args.spp.unwrap_or(if args.time_per_frame.is_some() { u32::MAX } else { 64 });
 

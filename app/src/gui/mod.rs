@@ -886,12 +886,7 @@ impl NimbusApp {
         let mut scene = SceneFile::load(&path)?;
         scene.validate()?;
         // Keep relative cloud and model files working after the scene moves into memory.
-        if let (Some(f), Some(dir)) = (&scene.grid.file, &scene.base_dir) {
-            scene.grid.file = Some(dir.join(f).display().to_string());
-        }
-        if let Some(m) = scene.model_path() {
-            scene.render.model = Some(m.display().to_string());
-        }
+        scene.absolutize_paths();
         self.set_scene(scene);
         self.remember(&path);
         Ok(Some(format!("opened {}", path.display())))

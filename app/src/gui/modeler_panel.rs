@@ -130,7 +130,7 @@ impl ModelerPanel {
         anyhow::ensure!(!modeler::PRESET_NAMES.contains(&name), "{name} is a built-in preset's name");
         let dir = self.user_dir.clone().ok_or_else(|| anyhow::anyhow!("no folder for presets"))?;
         std::fs::create_dir_all(&dir).map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;
-        let path = dir.join(format!("{name}.toml"));
+        let path = preset_path(&dir, name);
         let text = toml::to_string_pretty(params).expect("parameters serialize");
         crate::output::write_bytes_atomically(&path, text.as_bytes())?;
         self.thumbs.remove(name);
