@@ -93,12 +93,26 @@ pub fn downscale(img: &Image, f: u32) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
 /// reference over those blocks. The noise floor is E|N(0, s)| = s sqrt(2 / pi) with
 /// s^2 the two block means' variances, averaged the same way.
 pub fn bias(reference: &Image, pred: &Image) -> (f64, f64, f64) {
+    bias_in(reference, pred, &nonempty(&reference.mean))
+}
+
+/// [`bias`] over the blocks that hold at least one pixel of `mask` (with a sky behind
+/// the cloud, the pixels the cloud covers; without one, `nonempty` gives [`bias`]).
+pub fn bias_in(reference: &Image, pred: &Image, mask: &[bool]) -> (f64, f64, f64) {
     let (rm, rv) = downscale(reference, 16);
     let (pm, pv) = downscale(pred, 16);
+    let bw = reference.w.div_ceil(16);
+    let mut covered = vec![false; rm.len()];
+    for (i, m) in mask.iter().enumerate() {
+        if *m {
+            let (x, y) = (i as u32 % reference.w, i as u32 / reference.w);
+            covered[((y / 16) * bw + x / 16) as usize] = true;
+        }
+    }
     let (mut err, mut refsum, mut floor, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
     for b in 0..rm.len() {
         let r = (rm[b][0] + rm[b][1] + rm[b][2]) / 3.0;
-        if r <= 0.0 {
+        if r <= 0.0 || !covered[b] {
             continue;
         }
         n += 1;

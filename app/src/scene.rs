@@ -796,7 +796,7 @@ impl SceneFile {
             return Ok(Ok(bound));
         }
         Ok(self.load_model().map(|model| {
-            let bound = model.bind(&scene.medium, sun, max_nodes);
+            let bound = model.bind_scene(scene, sun, max_nodes);
             cache.bound.insert(0, (key, bound.clone()));
             cache.bound.truncate(PredictorCache::BINDINGS);
             bound
@@ -828,7 +828,7 @@ impl SceneFile {
         // The sun's field: 4 nodes per depth-field node per axis (256 at the default
         // 64, the field's own default; 96 for the window's coarse 24).
         let sun_nodes = (4 * max_nodes).clamp(2, SunTransmittance::DEFAULT_MAX_NODES);
-        let key = PredictorKey { model: None, ..PredictorKey::new(self, scene, sun_nodes) };
+        let key = PredictorKey { model: None, other_lights: false, ..PredictorKey::new(self, scene, sun_nodes) };
         let field = match cache.sun.iter().position(|(k, _)| *k == key) {
             Some(i) => cache.sun[i].1.clone(),
             None => {
@@ -924,6 +924,8 @@ struct PredictorKey {
     model: Option<PathBuf>,
     predictor: &'static str,
     nodes: u32,
+    /// Whether the binding answers other lights too (a sky, a soft sun).
+    other_lights: bool,
 }
 
 /// The models bound last (see [`SceneFile::integrator_cached`]). Holding them keeps their
@@ -948,7 +950,13 @@ impl PredictorCache {
 impl PredictorKey {
     /// A point-to-point model depends on the cloud, rho and the model file only.
     fn p2p(file: &SceneFile, scene: &Scene) -> Self {
-        PredictorKey { sun: [0; 3], nodes: 0, model: file.p2p_model_path(), ..PredictorKey::new(file, scene, 0) }
+        PredictorKey {
+            sun: [0; 3],
+            nodes: 0,
+            model: file.p2p_model_path(),
+            other_lights: false,
+            ..PredictorKey::new(file, scene, 0)
+        }
     }
 
     fn new(file: &SceneFile, scene: &Scene, nodes: u32) -> Self {
@@ -959,6 +967,7 @@ impl PredictorKey {
             model: file.model_path(),
             predictor: file.predictor_kind().name(),
             nodes,
+            other_lights: models::prediction::needs_other_lights(scene),
         }
     }
 }

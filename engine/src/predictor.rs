@@ -31,6 +31,15 @@ pub trait InScatterPredictor: Send + Sync {
         true
     }
 
+    /// Whether `predict` answers for a light of any direction, not only the sun it was
+    /// built for. The integrator then predicts the sky's high orders too (sky
+    /// directions sampled as directional lights, thesis chapter 7) and samples a soft
+    /// sun's disk; a predictor bound to one sun direction (false) gets the scene's sun
+    /// only, and the sky's orders >= k are left out.
+    fn answers_any_light_direction(&self) -> bool {
+        true
+    }
+
     /// A short name for logs and reports.
     fn name(&self) -> &str {
         "predictor"

@@ -6,7 +6,7 @@
 use crate::cloud::{BoundCloudModel, CloudModel};
 use crate::global::model::ModelError;
 use crate::global::{BoundGlobalModel, GlobalModel};
-use engine::{InScatterPredictor, Medium, Sun};
+use engine::{InScatterPredictor, Medium, Scene, Sun};
 use std::path::Path;
 use std::sync::Arc;
 
@@ -90,6 +90,30 @@ impl PredictionModel {
             PredictionModel::Global(m) => Arc::new(BoundGlobalModel::new(m.clone(), medium, sun, max_nodes)),
         }
     }
+
+    /// Binds the model to `scene`'s cloud and sun as [`PredictionModel::bind`] does,
+    /// and, when the scene has a sky or a soft sun ([`needs_other_lights`]), the global
+    /// model also to every light direction ([`crate::global::SkyDepthField`] at half
+    /// the nodes per axis), so that the integrator can predict the sky's high orders
+    /// and sample the sun's disk. The cloud model answers its sun only.
+    pub fn bind_scene(&self, scene: &Scene, sun: &Sun, max_nodes: u32) -> Arc<dyn InScatterPredictor> {
+        match self {
+            PredictionModel::Global(m) if needs_other_lights(scene) => {
+                Arc::new(BoundGlobalModel::new(m.clone(), &scene.medium, sun, max_nodes).with_other_lights(
+                    &scene.medium,
+                    crate::global::sky_field::DEFAULT_TEXELS,
+                    (max_nodes / 2).max(2),
+                ))
+            }
+            _ => self.bind(&scene.medium, sun, max_nodes),
+        }
+    }
+}
+
+/// Whether prediction in `scene` asks about lights other than the sun's centre: a sky,
+/// or a sun softer than [`crate::global::model::SUN_FIELD_ANGLE`].
+pub fn needs_other_lights(scene: &Scene) -> bool {
+    !scene.sky.is_black() || scene.sun.is_some_and(|s| s.angular_radius() > crate::global::model::SUN_FIELD_ANGLE)
 }
 
 /// The fingerprint of the shipped model of `kind` (render caches key on it).

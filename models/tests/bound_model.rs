@@ -86,3 +86,44 @@ fn batched_point_to_point_predictions_match_single_ones() {
         assert!((a - b).abs() <= 1e-4 * a.abs(), "query {i}: single {a}, batched {b}");
     }
 }
+
+/// The all-direction field (sky directions, a soft sun's disk) against ray-marched
+/// features for random lights on the same cloud: the features agree to within the
+/// coarser lattice and the blend across directions, and so do the predictions. A
+/// light within 2 degrees of the sun is answered from the sun's own field.
+#[test]
+fn all_direction_field_predictions_match_ray_marching_for_any_light() {
+    let medium = Medium::new(Arc::new(blob(96)), 40.0, 1.0, PhaseFunction::HenyeyGreenstein { g: 0.85 }).unwrap();
+    let sun = Sun::new(Vec3::new(0.3, -1.0, 0.2), Vec3::ONE, 0.0).unwrap();
+    let model = GlobalModel::shipped().unwrap();
+    let bound = BoundGlobalModel::new(model.clone(), &medium, &sun, 64).with_other_lights(
+        &medium,
+        models::global::sky_field::DEFAULT_TEXELS,
+        32,
+    );
+    let mut rng = Rng::new(19, 0, 0);
+    let mut rel = vec![];
+    while rel.len() < 300 {
+        let x = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5;
+        if medium.grid().lookup(x) < 0.05 {
+            continue;
+        }
+        let w = engine::sampling::sample_uniform_sphere(rng.uniform2());
+        let light = Sun::new(engine::sampling::sample_uniform_sphere(rng.uniform2()), Vec3::ONE, 0.0).unwrap();
+        let (pf, pm) = (bound.predict(&medium, &light, x, w), model.predict(&medium, &light, x, w));
+        assert!(pf.is_finite() && pf >= 0.0);
+        rel.push(((pf - pm) / pm.max(1e-6)).abs());
+    }
+    rel.sort_by(f32::total_cmp);
+    let (median, p90) = (rel[rel.len() / 2], rel[rel.len() * 9 / 10]);
+    eprintln!("all-direction field: median {median}, p90 {p90}");
+    assert!(median < 0.05 && p90 < 0.15, "prediction difference: median {median}, p90 {p90}");
+    // Within 2 degrees of the sun: the sun's field, bit for bit.
+    let near = Sun::new((sun.direction() + Vec3::new(0.02, 0.0, 0.0)).normalize(), Vec3::ONE, 0.0).unwrap();
+    assert!(near.direction().dot(sun.direction()) > 0.035f32.cos());
+    let (x, w) = (Vec3::new(0.05, 0.1, 0.0), Vec3::X);
+    assert_eq!(bound.predict(&medium, &near, x, w), bound.predict(&medium, &sun, x, w));
+    // Another medium still falls back to marching.
+    let other = Medium::new(medium.grid().clone(), 20.0, 1.0, PhaseFunction::HenyeyGreenstein { g: 0.85 }).unwrap();
+    assert_eq!(bound.predict(&other, &sun, x, w), model.predict(&other, &sun, x, w));
+}

@@ -11,8 +11,15 @@
 //! 1 .. k-1 are path traced; at vertex k the predictor's L_i(x_k -> omega), times the
 //! sun's radiance, is added with probability p and weighted 1/p, and the path ends.
 //! A predictor of multiple scattering only gets single scattering at vertex k by next
-//! event estimation first. The predictor answers for the sun: sky light of orders
-//! >= k is not added in this mode.
+//! event estimation first, for the sun and for the sky.
+//!
+//! Lights other than a delta sun (thesis chapter 7): a predictor that answers for
+//! any light direction gets, per predicted path, one direction on the soft sun's
+//! disk (the disk's mean over directions, by one sample) and one sky direction drawn
+//! from the sky's radiance as a directional light of unit irradiance, weighted by
+//! radiance / pdf; that estimates the sky's orders >= k, in expectation exactly what
+//! path tracing adds, up to the model's error. A predictor bound to one sun
+//! direction gets the sun's centre, and the sky's orders >= k are left out.
 
 use super::base::{Mode, PathSample, RenderSettings, roulette};
 use crate::light::Sun;
@@ -80,6 +87,64 @@ fn next_event(
     }
 }
 
+/// Prediction at vertex k (`x`, outgoing `wo`, throughput `beta`): single
+/// scattering by NEE first for a predictor of multiple scattering only, then, with
+/// probability `p` and weight 1 / p, the predicted L_i for the sun and for the sky.
+#[inline]
+#[allow(clippy::too_many_arguments)]
+fn predict_at_vertex(
+    scene: &Scene,
+    pred: &dyn InScatterPredictor,
+    p: f32,
+    x: Vec3,
+    wo: Vec3,
+    beta: f32,
+    order: u32,
+    rng: &mut Rng,
+    add: &mut impl FnMut(u32, Vec3),
+) {
+    let medium = &scene.medium;
+    let any_direction = pred.answers_any_light_direction();
+    let sky = (!scene.sky.is_black() && any_direction).then_some(&scene.sky);
+    if !pred.predicts_single_scattering() {
+        if let Some(sun) = &scene.sun {
+            next_event(scene, sun, x, wo, beta, order, rng, add);
+        }
+        if let Some(sky) = sky {
+            // The sky's single scattering at x: one phase-sampled direction, its
+            // transmittance by ratio tracking (the phase pdf cancels the phase value).
+            let wi = medium.phase().sample(wo, rng.uniform2()).wi;
+            let tr = medium.transmittance_ratio(x, wi, f32::INFINITY, rng);
+            if tr > 0.0 {
+                add(order, sky.radiance(wi) * (beta * tr));
+            }
+        }
+    }
+    if rng.uniform() >= p {
+        return;
+    }
+    if let Some(sun) = &scene.sun {
+        let light = if any_direction && sun.angular_radius() > 0.0 {
+            Sun::new(-sun.sample_wi(rng.uniform2()), Vec3::ONE, 0.0).ok()
+        } else {
+            None
+        };
+        let li = pred.predict(medium, light.as_ref().unwrap_or(sun), x, wo);
+        if li.is_finite() && li >= 0.0 {
+            add(order, sun.radiance() * (beta * li / p));
+        }
+    }
+    if let Some(sky) = sky {
+        let (wi, pdf) = sky.sample(rng.uniform2());
+        if let Ok(light) = Sun::new(-wi, Vec3::ONE, 0.0) {
+            let li = pred.predict(medium, &light, x, wo);
+            if li.is_finite() && li >= 0.0 && pdf > 0.0 {
+                add(order, sky.radiance(wi) * (beta * li / (p * pdf)));
+            }
+        }
+    }
+}
+
 /// The path from a scattering vertex at `x` (the `order`-th) with outgoing
 /// direction `wo` and throughput `beta` (albedo of this vertex included); next
 /// event estimation from orders >= `min_order` only. Every contribution goes to
@@ -106,18 +171,8 @@ pub(crate) fn scatter_from(
         }
         if let Mode::Predict { p } = settings.mode {
             if order == settings.k {
-                // Predict L_i at vertex k, roulette with probability p. A predictor
-                // of multiple scattering only gets single scattering by NEE here.
-                if let (Some(pred), Some(sun)) = (predictor, &scene.sun) {
-                    if !pred.predicts_single_scattering() {
-                        next_event(scene, sun, x, wo, beta, order, rng, add);
-                    }
-                    if rng.uniform() < p {
-                        let li = pred.predict(medium, sun, x, wo);
-                        if li.is_finite() && li >= 0.0 {
-                            add(order, sun.radiance() * (beta * li / p));
-                        }
-                    }
+                if let Some(pred) = predictor {
+                    predict_at_vertex(scene, pred, p, x, wo, beta, order, rng, add);
                 }
                 return;
             }

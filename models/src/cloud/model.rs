@@ -210,6 +210,11 @@ impl InScatterPredictor for BoundCloudModel {
         false
     }
 
+    /// Its sun-transmittance field holds one sun direction.
+    fn answers_any_light_direction(&self) -> bool {
+        false
+    }
+
     fn name(&self) -> &str {
         "cloud-aware MLP"
     }

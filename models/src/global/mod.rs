@@ -10,9 +10,11 @@ pub mod directions;
 pub mod features;
 pub mod ground_truth;
 pub mod model;
+pub mod sky_field;
 pub mod train;
 
 pub use datagen::{Dataset, GlobalManifest, GlobalSpec, ShapeKind};
 pub use depth_field::DepthField;
 pub use model::{BoundGlobalModel, GlobalModel, ModelError, Sidecar, TargetKind};
+pub use sky_field::SkyDepthField;
 pub use train::{TrainConfig, TrainData, TrainError};

@@ -11,6 +11,7 @@
 use super::depth_field::DepthField;
 use super::directions::{DirectionSetKind, LightFrame};
 use super::features::FeatureExtractor;
+use super::sky_field::SkyDepthField;
 use crate::nn::dense::Activation;
 use crate::nn::mlp::{Mlp, Scratch};
 use engine::{InScatterPredictor, Medium, PhaseFunction, Sun};
@@ -362,7 +363,15 @@ pub struct BoundGlobalModel {
     grid: Arc<engine::DensityGrid>,
     rho: f32,
     omega_l: Vec3,
+    /// Optical depths along every direction, for other lights (sky directions, a
+    /// soft sun's disk): built by [`BoundGlobalModel::with_other_lights`].
+    sky: Option<Arc<SkyDepthField>>,
 }
+
+/// Lights within this angle of the bound sun (radians, 2 degrees) are answered from the
+/// sun's own field, as if they were its centre: a nearly delta sun keeps the sun
+/// field's accuracy.
+pub const SUN_FIELD_ANGLE: f32 = 0.035;
 
 impl BoundGlobalModel {
     /// Builds the depth field of `medium` for `sun` (about a second at 64^3 nodes on two
@@ -377,7 +386,20 @@ impl BoundGlobalModel {
             grid: medium.grid().clone(),
             rho: medium.rho(),
             omega_l,
+            sky: None,
         }
+    }
+
+    /// Adds the field of optical depths along every direction ([`SkyDepthField`],
+    /// `texels`^2 directions, at most `max_nodes` nodes per axis), with which the
+    /// model answers lights other than its sun without ray marching.
+    pub fn with_other_lights(mut self, medium: &Medium, texels: u32, max_nodes: u32) -> Self {
+        self.sky = Some(Arc::new(SkyDepthField::build(medium, texels, max_nodes)));
+        self
+    }
+
+    pub fn sky_field(&self) -> Option<&SkyDepthField> {
+        self.sky.as_deref()
     }
 
     pub fn model(&self) -> &Arc<GlobalModel> {
@@ -394,20 +416,28 @@ impl BoundGlobalModel {
         FeatureExtractor::write_head(medium.albedo(), medium.phase().mean_cosine(), &self.frame, omega, out);
         self.field.lookup(x, &mut out[4..]);
     }
-
-    fn matches(&self, medium: &Medium, sun: &Sun) -> bool {
-        Arc::ptr_eq(medium.grid(), &self.grid) && medium.rho() == self.rho && sun.direction() == self.omega_l
-    }
 }
 
 impl InScatterPredictor for BoundGlobalModel {
+    /// The bound sun (or a light within [`SUN_FIELD_ANGLE`] of it) from the sun's
+    /// field, any other light of the same medium from the all-direction field when it
+    /// was built, anything else by ray marching.
     fn predict(&self, medium: &Medium, sun: &Sun, x: Vec3, omega: Vec3) -> f32 {
-        if !self.matches(medium, sun) {
-            return self.model.predict(medium, sun, x, omega);
-        }
+        let same_medium = Arc::ptr_eq(medium.grid(), &self.grid) && medium.rho() == self.rho;
         let mut feat = [0.0f32; 4 + 256];
         let n = self.model.features.len();
-        self.features(medium, x, omega, &mut feat[..n]);
+        if !same_medium {
+            return self.model.predict(medium, sun, x, omega);
+        }
+        if sun.direction() == self.omega_l || sun.direction().dot(self.omega_l) >= SUN_FIELD_ANGLE.cos() {
+            self.features(medium, x, omega, &mut feat[..n]);
+        } else if let Some(sky) = &self.sky {
+            let frame = LightFrame::new(sun.direction());
+            FeatureExtractor::write_head(medium.albedo(), medium.phase().mean_cosine(), &frame, omega, &mut feat[..n]);
+            sky.lookup(x, &frame, self.model.features.directions(), &mut feat[4..n]);
+        } else {
+            return self.model.predict(medium, sun, x, omega);
+        }
         let v = SCRATCH.with(|s| self.model.predict_features(&feat[..n], &mut s.borrow_mut()));
         if v.is_finite() { v } else { 0.0 }
     }

@@ -130,6 +130,34 @@ fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<(
         sink += bound.predict(&medium, &sun, p, w);
     }
     let bound_ns = t.elapsed().as_secs_f64() * 1e9 / (n / 4) as f64;
+    // Lights other than the sun (sky directions, a soft sun's disk): the all-direction
+    // field, one random light per prediction.
+    let t = std::time::Instant::now();
+    let bound = bound.with_other_lights(
+        &medium,
+        models::global::sky_field::DEFAULT_TEXELS,
+        models::global::depth_field::DEFAULT_MAX_NODES / 2,
+    );
+    let sky_field_secs = t.elapsed().as_secs_f64();
+    let lights: Vec<engine::Sun> = (0..1024)
+        .map(|_| engine::Sun::new(engine::sampling::sample_uniform_sphere(rng.uniform2()), glam::Vec3::ONE, 0.0))
+        .collect::<Result<_, _>>()?;
+    let t = std::time::Instant::now();
+    for i in 0..n / 4 {
+        let (p, w) = points[i % points.len()];
+        sink += bound.predict(&medium, &lights[i % lights.len()], p, w);
+    }
+    let sky_ns = t.elapsed().as_secs_f64() * 1e9 / (n / 4) as f64;
+    // Its accuracy: the same random lights answered with ray-marched features.
+    let (mut diff, mut total) = (0.0f64, 0.0f64);
+    for i in 0..400 {
+        let (p, w) = points[i % points.len()];
+        let light = &lights[i % lights.len()];
+        let marched = model.predict(&medium, light, p, w) as f64;
+        diff += (bound.predict(&medium, light, p, w) as f64 - marched).abs();
+        total += marched;
+    }
+    let sky_rel_diff = diff / total.max(1e-30);
     let t = std::time::Instant::now();
     let phase = medium.phase();
     for i in 0..m {
@@ -161,6 +189,15 @@ fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<(
         "| features alone, depth field | {field_features_ns:.0} = {:.2} path-traced scattering events | <= 5 events |",
         field_features_ns / event_ns
     );
+    println!(
+        "| features alone, all-direction field, any light | {:.0} = {:.2} path-traced scattering events | |",
+        sky_ns - net_ns,
+        (sky_ns - net_ns) / event_ns
+    );
+    println!(
+        "| all-direction field against ray-marched features, 400 random lights | mean abs. difference {:.1} % of the mean prediction | |",
+        100.0 * sky_rel_diff
+    );
     let f = bound.field();
     println!(
         "| depth field build ({}^3 nodes x {} directions, {:.0} MiB, one thread) | {:.2} s once per cloud and sun | |",
@@ -168,6 +205,14 @@ fn bench_predict_inner(model: &GlobalModel, args: &BenchPredictArgs) -> Result<(
         f.n_dirs(),
         f.memory_bytes() as f64 / 1048576.0,
         field_secs
+    );
+    let f = bound.sky_field().expect("built above").field();
+    println!(
+        "| all-direction field build ({}^3 nodes x {} directions, {:.0} MiB, one thread) | {:.2} s once per cloud, with a sky or a soft sun | |",
+        f.nodes().x,
+        f.n_dirs(),
+        f.memory_bytes() as f64 / 1048576.0,
+        sky_field_secs
     );
     Ok(())
 }

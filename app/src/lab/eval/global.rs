@@ -25,7 +25,7 @@ use super::common::{Csv, TileSheet, image_npy, opt_cell, read_image_npy, read_js
 use super::preview::PreviewJob;
 use crate::cli::common::{RunArgs, init_threads, progress_bar, stop_on_ctrl_c};
 use crate::metrics::{
-    Image, bias, error_colours, lit_mean, nonempty, projected_preview, reference_noise, relative_rmse_less, ttuv,
+    Image, bias_in, error_colours, lit_mean, projected_preview, reference_noise, relative_rmse_less, ttuv,
 };
 use crate::output::{ToneMap, write_bytes_atomically};
 use crate::scene::SceneFile;
@@ -94,6 +94,11 @@ pub struct EvalArgs {
     /// approximation with its defaults and fitted to the reference).
     #[arg(long, default_value_t = 32)]
     pub preview_passes: u32,
+    /// Light every scene by the evaluation sky as well as the sun ([`EVAL_SKY`]: a
+    /// clear-day gradient over a ground of albedo 0.3), for the bias of prediction
+    /// under sun + sky against the same scenes under the sun alone.
+    #[arg(long)]
+    pub sky: bool,
     /// Output directory (tables, plots, sheets, and the render cache).
     #[arg(long, default_value = "out/eval")]
     pub out: PathBuf,
@@ -169,15 +174,29 @@ fn cell_key(key: &str, k: u32, args: &EvalArgs, model_id: &str) -> String {
     format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}_{model_id}", args.spp, args.spp_ref, args.field_nodes)
 }
 
-/// The scene file of one evaluation configuration.
-pub fn eval_scene(preset: &str, config: &str, rho: f32, size: u32, res: u32) -> Result<SceneFile> {
+/// The sky of `nimbus eval --sky`: zenith and horizon radiance of a clear day (blue
+/// overhead, paler toward the horizon) for a sun of irradiance 1, whose upper
+/// hemisphere delivers about a third of the sun's irradiance to a level surface, and a
+/// ground of albedo 0.3 lit by both.
+pub const EVAL_SKY: &str = "[sky]\nradiance = [0.05, 0.09, 0.18]\nhorizon = [0.16, 0.18, 0.21]\nground_albedo = 0.3\n";
+
+/// The scene file of one evaluation configuration (with [`EVAL_SKY`] if `sky`).
+pub fn eval_scene(preset: &str, config: &str, rho: f32, size: u32, res: u32, sky: bool) -> Result<SceneFile> {
     let text = format!(
         "[grid]\npreset = \"{preset}\"\nresolution = {res}\n[medium]\nrho = {rho}\nalbedo = 1.0\nphase = \"hg\"\ng = 0.85\n\
-         [camera]\npreset = \"{config}\"\nwidth = {size}\nheight = {size}\n"
+         [camera]\npreset = \"{config}\"\nwidth = {size}\nheight = {size}\n{}",
+        if sky { EVAL_SKY } else { "" }
     );
     let s = SceneFile::from_toml_str(&text, "evaluation scene")?;
     s.validate()?;
     Ok(s)
+}
+
+/// The pixels the cloud covers: some light scattered in the cloud reaches them (full
+/// minus the order-0 image > 0). Without a sky, the non-empty pixels; with one, the
+/// sky around the cloud is left out of every figure.
+fn cloud_pixels(full: &[[f32; 3]], direct: &[[f32; 3]]) -> Vec<bool> {
+    full.iter().zip(direct).map(|(f, d)| (0..3).map(|c| f[c] - d[c]).sum::<f32>() > 0.0).collect()
 }
 
 /// Runs the study (or the selected part of it); returns every cell's result.
@@ -242,7 +261,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         let base = (gi as u64) * renders_per_group;
         bar.set_position(base);
         bar.set_message(format!("scene {label} {config} rho {rho}"));
-        let file = eval_scene(preset, config, *rho, args.size, args.res)?;
+        let file = eval_scene(preset, config, *rho, args.size, args.res, args.sky)?;
         let grid = match grids.iter().find(|(p, _)| p == preset) {
             Some((_, g)) => g.clone(),
             None => {
@@ -252,7 +271,8 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             }
         };
         let scene = Arc::new(file.build_scene(Some(grid))?);
-        let key = format!("{label}_{config}_rho{rho}_{}px_res{}", args.size, args.res);
+        let key =
+            format!("{label}_{config}_rho{rho}_{}px_res{}{}", args.size, args.res, if args.sky { "_sky" } else { "" });
         // The reference, from the cache or rendered now.
         let ref_npy = cache.join(format!("{key}_ref{}.npy", args.spp_ref));
         let ref_json = ref_npy.with_extension("json");
@@ -262,19 +282,25 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             (f.seed, f.k) = (seed, 1);
             Ok(f.integrator_with(None)?)
         };
-        let (reference, mut meta) = match (read_json::<ReferenceMeta>(&ref_json), ref_npy.exists()) {
-            (Some(meta), true) => {
-                let layers = read_image_npy(&ref_npy, args.size, args.size, 2)?;
+        // The reference's full image (mean, variance) and its order-0 image (the sky
+        // seen through the cloud), from the cache or rendered now.
+        let cached = match (read_json::<ReferenceMeta>(&ref_json), ref_npy.exists()) {
+            (Some(meta), true) => read_image_npy(&ref_npy, args.size, args.size, 3).ok().map(|layers| {
                 let mut it = layers.into_iter();
-                let (mean, var) = (it.next().unwrap(), it.next().unwrap());
-                (Image { w: args.size, h: args.size, mean, var }, meta)
-            }
-            _ => {
+                let (mean, var, direct) = (it.next().unwrap(), it.next().unwrap(), it.next().unwrap());
+                (Image { w: args.size, h: args.size, mean, var }, direct, meta)
+            }),
+            _ => None,
+        };
+        let (reference, ref_direct, mut meta) = match cached {
+            Some(c) => c,
+            None => {
                 let t = render_tracked(scene.clone(), path_traced(0)?, args.spp_ref, &control, None, false, |d| {
                     bar.set_position(base + d as u64)
                 })?;
                 let img = Image::from_film(&t.film, Buffer::Full);
-                let mask = nonempty(&img.mean);
+                let direct = t.film.mean(Buffer::Direct);
+                let mask = cloud_pixels(&img.mean, &direct);
                 let meta = ReferenceMeta {
                     spp: args.spp_ref,
                     seconds: t.seconds,
@@ -284,14 +310,23 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 };
                 write_bytes_atomically(
                     &ref_npy,
-                    &image_npy(&[img.mean.clone(), img.var.clone()], args.size, args.size),
+                    &image_npy(&[img.mean.clone(), img.var.clone(), direct.clone()], args.size, args.size),
                 )?;
                 write_json(&ref_json, &meta)?;
-                (img, meta)
+                (img, direct, meta)
             }
         };
-        let mask = nonempty(&reference.mean);
-        let ref_mean = lit_mean(&reference.mean);
+        let mask = cloud_pixels(&reference.mean, &ref_direct);
+        let ref_mean = {
+            let lit: Vec<f64> = reference
+                .mean
+                .iter()
+                .zip(&mask)
+                .filter(|(_, m)| **m)
+                .map(|(p, _)| (p[0] + p[1] + p[2]) as f64 / 3.0)
+                .collect();
+            if lit.is_empty() { 0.0 } else { lit.iter().sum::<f64>() / lit.len() as f64 }
+        };
         let ref_noise = reference_noise(&reference, &mask);
         if args.preview && meta.preview_curve.is_empty() {
             // The reference's own noise is subtracted (`relative_rmse`), so path tracing
@@ -316,7 +351,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 .get_or_init(|| {
                     let t = Instant::now();
                     let sun = scene.sun.as_ref().expect("evaluation scenes have a sun");
-                    let b = model.bind(&scene.medium, sun, args.field_nodes);
+                    let b = model.bind_scene(&scene, sun, args.field_nodes);
                     (b, t.elapsed().as_secs_f64())
                 })
                 .clone()
@@ -349,7 +384,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                     bar.set_position(kbase + d as u64)
                 })?;
             let full = Image::from_film(&t.film, Buffer::Full);
-            let (b, rb, floor) = bias(&reference, &full);
+            let (b, rb, floor) = bias_in(&reference, &full, &mask);
             let ttuv_pred = ttuv(&full.var, &mask, t.seconds);
             let rmse_floor = relative_rmse_less(&full.mean, &reference, &mask, Some(&full.var));
             let cell = CellResult {
