@@ -82,26 +82,36 @@ impl DepthField {
         self.data.len() * 4
     }
 
+    /// The eight lattice nodes around `x` (clamped to the lattice) and their
+    /// trilinear weights.
+    #[inline]
+    fn corners(&self, x: Vec3) -> [(usize, f32); 8] {
+        let u = ((x - self.origin) * self.inv_spacing).clamp(Vec3::ZERO, (self.n - UVec3::ONE).as_vec3());
+        let i0 = u.floor().as_uvec3().min(self.n - UVec3::splat(2).min(self.n));
+        let f = u - i0.as_vec3();
+        std::array::from_fn(|c| {
+            let c = c as u32;
+            let (dx, dy, dz) = (c & 1, (c >> 1) & 1, (c >> 2) & 1);
+            let w = (if dx == 1 { f.x } else { 1.0 - f.x })
+                * (if dy == 1 { f.y } else { 1.0 - f.y })
+                * (if dz == 1 { f.z } else { 1.0 - f.z });
+            let idx = (i0.x + dx) as usize
+                + self.n.x as usize * ((i0.y + dy) as usize + self.n.y as usize * (i0.z + dz) as usize);
+            (idx, w)
+        })
+    }
+
     /// tau_hat at `x` for every direction (trilinear between nodes; positions outside
     /// the lattice are clamped to it), written to `out[..n_dirs]`.
     #[inline]
     pub fn lookup(&self, x: Vec3, out: &mut [f32]) {
         let out = &mut out[..self.n_dirs];
-        let u = ((x - self.origin) * self.inv_spacing).clamp(Vec3::ZERO, (self.n - UVec3::ONE).as_vec3());
-        let i0 = u.floor().as_uvec3().min(self.n - UVec3::splat(2).min(self.n));
-        let f = u - i0.as_vec3();
         out.fill(0.0);
         let nd = self.n_dirs;
-        for c in 0..8u32 {
-            let (dx, dy, dz) = (c & 1, (c >> 1) & 1, (c >> 2) & 1);
-            let w = (if dx == 1 { f.x } else { 1.0 - f.x })
-                * (if dy == 1 { f.y } else { 1.0 - f.y })
-                * (if dz == 1 { f.z } else { 1.0 - f.z });
+        for (idx, w) in self.corners(x) {
             if w == 0.0 {
                 continue;
             }
-            let idx = (i0.x + dx) as usize
-                + self.n.x as usize * ((i0.y + dy) as usize + self.n.y as usize * (i0.z + dz) as usize);
             let row = &self.data[idx * nd..(idx + 1) * nd];
             for (o, v) in out.iter_mut().zip(row) {
                 *o = v.mul_add(w, *o);
@@ -116,21 +126,12 @@ impl DepthField {
     #[inline]
     pub fn lookup_blend(&self, x: Vec3, taps: &[[(u32, f32); 4]], out: &mut [f32]) {
         let out = &mut out[..taps.len()];
-        let u = ((x - self.origin) * self.inv_spacing).clamp(Vec3::ZERO, (self.n - UVec3::ONE).as_vec3());
-        let i0 = u.floor().as_uvec3().min(self.n - UVec3::splat(2).min(self.n));
-        let f = u - i0.as_vec3();
         out.fill(0.0);
         let nd = self.n_dirs;
-        for c in 0..8u32 {
-            let (dx, dy, dz) = (c & 1, (c >> 1) & 1, (c >> 2) & 1);
-            let w = (if dx == 1 { f.x } else { 1.0 - f.x })
-                * (if dy == 1 { f.y } else { 1.0 - f.y })
-                * (if dz == 1 { f.z } else { 1.0 - f.z });
+        for (idx, w) in self.corners(x) {
             if w == 0.0 {
                 continue;
             }
-            let idx = (i0.x + dx) as usize
-                + self.n.x as usize * ((i0.y + dy) as usize + self.n.y as usize * (i0.z + dz) as usize);
             let row = &self.data[idx * nd..(idx + 1) * nd];
             for (o, t) in out.iter_mut().zip(taps) {
                 let v = t.iter().fold(0.0f32, |a, &(i, wt)| row[i as usize].mul_add(wt, a));
