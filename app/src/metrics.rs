@@ -47,16 +47,21 @@ pub fn lit_mean(img: &[[f32; 3]]) -> f64 {
     if n == 0 { 0.0 } else { s / n as f64 }
 }
 
-/// TTUV: mean over `mask` of the variance of the pixel estimate, times seconds.
-pub fn ttuv(var: &[[f32; 3]], mask: &[bool], seconds: f64) -> f64 {
+/// Mean over `mask` of the pixels (averaged over channels); 0 for an empty mask.
+pub fn masked_mean(img: &[[f32; 3]], mask: &[bool]) -> f64 {
     let (mut s, mut n) = (0.0f64, 0usize);
-    for (v, m) in var.iter().zip(mask) {
+    for (v, m) in img.iter().zip(mask) {
         if *m {
             s += avg3(v);
             n += 1;
         }
     }
-    if n == 0 { 0.0 } else { s / n as f64 * seconds }
+    if n == 0 { 0.0 } else { s / n as f64 }
+}
+
+/// TTUV: mean over `mask` of the variance of the pixel estimate, times seconds.
+pub fn ttuv(var: &[[f32; 3]], mask: &[bool], seconds: f64) -> f64 {
+    masked_mean(var, mask) * seconds
 }
 
 /// Box-filters an image down by `f` per axis (partial blocks at the edges averaged over

@@ -786,7 +786,9 @@ impl SceneFile {
         max_nodes: u32,
         cache: &mut PredictorCache,
     ) -> Result<Result<Arc<dyn InScatterPredictor>, ModelError>, SceneError> {
-        let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("prediction needs a sun".into()))?;
+        if scene.sun.is_none() {
+            return Err(SceneError::Invalid("prediction needs a sun".into()));
+        }
         let key = PredictorKey::new(self, scene, max_nodes);
         if let Some(i) = cache.bound.iter().position(|(k, _)| *k == key) {
             // Most recently used first.
@@ -796,7 +798,7 @@ impl SceneFile {
             return Ok(Ok(bound));
         }
         Ok(self.load_model().map(|model| {
-            let bound = model.bind_scene(scene, sun, max_nodes);
+            let bound = model.bind_scene(scene, max_nodes).expect("a sun, checked above");
             cache.bound.insert(0, (key, bound.clone()));
             cache.bound.truncate(PredictorCache::BINDINGS);
             bound

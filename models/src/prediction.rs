@@ -96,8 +96,10 @@ impl PredictionModel {
     /// model also to every light direction ([`crate::global::SkyDepthField`] at half
     /// the nodes per axis), so that the integrator can predict the sky's high orders
     /// and sample the sun's disk. The cloud model answers its sun only.
-    pub fn bind_scene(&self, scene: &Scene, sun: &Sun, max_nodes: u32) -> Arc<dyn InScatterPredictor> {
-        match self {
+    /// None for a scene without a sun (prediction has nothing to answer for).
+    pub fn bind_scene(&self, scene: &Scene, max_nodes: u32) -> Option<Arc<dyn InScatterPredictor>> {
+        let sun = scene.sun.as_ref()?;
+        Some(match self {
             PredictionModel::Global(m) if needs_other_lights(scene) => {
                 Arc::new(BoundGlobalModel::new(m.clone(), &scene.medium, sun, max_nodes).with_other_lights(
                     &scene.medium,
@@ -106,7 +108,7 @@ impl PredictionModel {
                 ))
             }
             _ => self.bind(&scene.medium, sun, max_nodes),
-        }
+        })
     }
 }
 

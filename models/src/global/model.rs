@@ -366,6 +366,8 @@ pub struct BoundGlobalModel {
     /// Optical depths along every direction, for other lights (sky directions, a
     /// soft sun's disk): built by [`BoundGlobalModel::with_other_lights`].
     sky: Option<Arc<SkyDepthField>>,
+    /// cos [`SUN_FIELD_ANGLE`].
+    near_cos: f32,
 }
 
 /// Lights within this angle of the bound sun (radians, 2 degrees) are answered from the
@@ -387,6 +389,7 @@ impl BoundGlobalModel {
             rho: medium.rho(),
             omega_l,
             sky: None,
+            near_cos: SUN_FIELD_ANGLE.cos(),
         }
     }
 
@@ -423,13 +426,12 @@ impl InScatterPredictor for BoundGlobalModel {
     /// field, any other light of the same medium from the all-direction field when it
     /// was built, anything else by ray marching.
     fn predict(&self, medium: &Medium, sun: &Sun, x: Vec3, omega: Vec3) -> f32 {
-        let same_medium = Arc::ptr_eq(medium.grid(), &self.grid) && medium.rho() == self.rho;
-        let mut feat = [0.0f32; 4 + 256];
-        let n = self.model.features.len();
-        if !same_medium {
+        if !(Arc::ptr_eq(medium.grid(), &self.grid) && medium.rho() == self.rho) {
             return self.model.predict(medium, sun, x, omega);
         }
-        if sun.direction() == self.omega_l || sun.direction().dot(self.omega_l) >= SUN_FIELD_ANGLE.cos() {
+        let mut feat = [0.0f32; 4 + 256];
+        let n = self.model.features.len();
+        if sun.direction().dot(self.omega_l) >= self.near_cos {
             self.features(medium, x, omega, &mut feat[..n]);
         } else if let Some(sky) = &self.sky {
             let frame = LightFrame::new(sun.direction());

@@ -101,13 +101,16 @@ impl SkyDepthField {
     }
 
     /// tau_hat at `x` along `frame.to_world(local_dirs[k])` for every k, to `out`.
+    /// Directions go in chunks of 64 (the global model's n_D: one pass over the
+    /// nodes), so the taps live in a small stack array.
     pub fn lookup(&self, x: Vec3, frame: &LightFrame, local_dirs: &[Vec3], out: &mut [f32]) {
-        let mut taps = [[(0u32, 0.0f32); 4]; 256];
-        let n = local_dirs.len().min(256);
-        for (t, d) in taps.iter_mut().zip(&local_dirs[..n]) {
-            *t = self.taps(frame.to_world(*d));
+        let mut taps = [[(0u32, 0.0f32); 4]; 64];
+        for (dirs, out) in local_dirs.chunks(64).zip(out.chunks_mut(64)) {
+            for (t, d) in taps.iter_mut().zip(dirs) {
+                *t = self.taps(frame.to_world(*d));
+            }
+            self.field.lookup_blend(x, &taps[..dirs.len()], out);
         }
-        self.field.lookup_blend(x, &taps[..n], out);
     }
 }
 

@@ -25,7 +25,7 @@ use super::common::{Csv, TileSheet, image_npy, opt_cell, read_image_npy, read_js
 use super::preview::PreviewJob;
 use crate::cli::common::{RunArgs, init_threads, progress_bar, stop_on_ctrl_c};
 use crate::metrics::{
-    Image, bias_in, error_colours, lit_mean, projected_preview, reference_noise, relative_rmse_less, ttuv,
+    Image, bias_in, error_colours, lit_mean, masked_mean, projected_preview, reference_noise, relative_rmse_less, ttuv,
 };
 use crate::output::{ToneMap, write_bytes_atomically};
 use crate::scene::SceneFile;
@@ -317,16 +317,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             }
         };
         let mask = cloud_pixels(&reference.mean, &ref_direct);
-        let ref_mean = {
-            let lit: Vec<f64> = reference
-                .mean
-                .iter()
-                .zip(&mask)
-                .filter(|(_, m)| **m)
-                .map(|(p, _)| (p[0] + p[1] + p[2]) as f64 / 3.0)
-                .collect();
-            if lit.is_empty() { 0.0 } else { lit.iter().sum::<f64>() / lit.len() as f64 }
-        };
+        let ref_mean = masked_mean(&reference.mean, &mask);
         let ref_noise = reference_noise(&reference, &mask);
         if args.preview && meta.preview_curve.is_empty() {
             // The reference's own noise is subtracted (`relative_rmse`), so path tracing
@@ -350,8 +341,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             bound
                 .get_or_init(|| {
                     let t = Instant::now();
-                    let sun = scene.sun.as_ref().expect("evaluation scenes have a sun");
-                    let b = model.bind_scene(&scene, sun, args.field_nodes);
+                    let b = model.bind_scene(&scene, args.field_nodes).expect("evaluation scenes have a sun");
                     (b, t.elapsed().as_secs_f64())
                 })
                 .clone()
