@@ -39,11 +39,25 @@ impl Builtin {
         }
     }
 
-    /// The cloud voxelized at `resolution`^3 over [-0.5, 0.5]^3.
+    /// Whether the density can be non-zero in box `b` (conservative): near a lobe,
+    /// within the smooth union's reach (it lies at most k / 4 below the nearest lobe).
+    pub fn may_be_nonzero(&self, b: Bounds3) -> bool {
+        let near = |c: Vec3, r: f32| (c.clamp(b.min, b.max) - c).length() <= r;
+        match self {
+            Builtin::Cumulus => LOBES.iter().any(|&(x, y, z, r)| near(Vec3::new(x, y, z), r + 0.25 * 0.06 + 1e-4)),
+            Builtin::Sphere => near(Vec3::ZERO, 0.45),
+        }
+    }
+
+    /// The cloud voxelized at `resolution`^3 over [-0.5, 0.5]^3: dense up to
+    /// [`modeler::DENSE_BUILD_MAX`], sparse bricks above.
     pub fn grid(&self, resolution: u32) -> DensityGrid {
-        DensityGrid::from_fn(UVec3::splat(resolution), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)), |p| {
-            self.density(p)
-        })
+        let (dims, bounds) = (UVec3::splat(resolution), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)));
+        if resolution <= modeler::DENSE_BUILD_MAX {
+            DensityGrid::from_fn(dims, bounds, |p| self.density(p))
+        } else {
+            DensityGrid::from_fn_sparse(dims, bounds, |b| self.may_be_nonzero(b), |p| self.density(p))
+        }
         .expect("built-in clouds are finite and non-negative")
     }
 }
@@ -101,5 +115,33 @@ mod tests {
         assert!(g.lookup(Vec3::new(0.0, -0.1, 0.0)) > 0.99);
         // Nothing touches the box faces.
         assert_eq!(g.max_on_boundary(), 0.0, "cloud touches the box");
+    }
+
+    /// The brick test never rejects density: every non-zero voxel of a dense build
+    /// lies in an accepted brick, and the sparse build equals the dense one.
+    #[test]
+    fn brick_test_is_conservative() {
+        for b in [Builtin::Cumulus, Builtin::Sphere] {
+            let res = 72u32;
+            let dense = b.grid(res);
+            let sparse = DensityGrid::from_fn_sparse(
+                UVec3::splat(res),
+                Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)),
+                |bx| b.may_be_nonzero(bx),
+                |p| b.density(p),
+            )
+            .unwrap();
+            assert_eq!(sparse.to_dense_vec(), dense.to_dense_vec(), "{b:?}");
+            let vs = 1.0 / res as f32;
+            let bd = dense.brick_dims();
+            let accepted = (0..bd.x * bd.y * bd.z)
+                .filter(|i| {
+                    let c = UVec3::new(i % bd.x, (i / bd.x) % bd.y, i / (bd.x * bd.y)) * engine::grid::BRICK;
+                    let lo = Vec3::splat(-0.5) + c.as_vec3() * vs;
+                    b.may_be_nonzero(Bounds3::new(lo, lo + engine::grid::BRICK as f32 * vs))
+                })
+                .count();
+            assert!(accepted < (bd.x * bd.y * bd.z) as usize, "{b:?}: the brick test rejects nothing");
+        }
     }
 }

@@ -32,12 +32,19 @@ pub fn render_spp(
     let generation = control.generation();
     let start = Instant::now();
     let mut stopped = false;
-    for done in 1..=spp {
-        if renderer.render_pass(control, generation) == PassOutcome::Cancelled {
+    // Passes in batches, so no core idles at the end of each pass (same image).
+    let batch = renderer.passes_per_batch();
+    let mut done = 0;
+    while done < spp {
+        let n = batch.min(spp - done);
+        if renderer.render_passes(n, control, generation) == PassOutcome::Cancelled {
             stopped = true;
             break;
         }
-        on_pass(done);
+        for _ in 0..n {
+            done += 1;
+            on_pass(done);
+        }
     }
     let render_secs = start.elapsed().as_secs_f64();
     Ok(RenderOutcome { film: renderer.snapshot(), render_secs, stopped })

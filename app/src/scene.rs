@@ -128,7 +128,8 @@ pub struct GridDesc {
     pub file: Option<String>,
     /// The float grid to read from `file` (default "density", else the first float grid).
     pub grid_name: Option<String>,
-    /// Voxels per axis for generated clouds, 2 ..= 1024. Default 128.
+    /// Voxels per axis for generated clouds, 2 ..= 2048 (sparse bricks above 256).
+    /// Default 128.
     #[serde(default = "default_resolution")]
     pub resolution: u32,
 }
@@ -470,8 +471,8 @@ impl SceneFile {
         if let Some(p) = &g.params {
             p.validate().map_err(|e| SceneError::Invalid(format!("grid.params.{e}")))?;
         }
-        if !(2..=1024).contains(&self.grid.resolution) {
-            return Err(range_err("grid.resolution", self.grid.resolution, "2 ..= 1024"));
+        if !(2..=2048).contains(&self.grid.resolution) {
+            return Err(range_err("grid.resolution", self.grid.resolution, "2 ..= 2048"));
         }
         let m = &self.medium;
         if !(m.rho.is_finite() && (0.0..=10000.0).contains(&m.rho)) {

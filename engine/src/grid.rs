@@ -12,6 +12,13 @@
 //! lengths times rho. Departure from docs/conventions.md's "zero outside its bounds": the
 //! support is the bounds grown by half a voxel (`support_bounds`), as in OpenVDB and
 //! pbrt-v4's `SampledGrid`, instead of a jump to zero at the bounds.
+//!
+//! Storage is dense (one array over the box) or sparse (bricks of 8^3 voxels, the
+//! size of an OpenVDB leaf): a table over the box's bricks points each brick at a
+//! slot in a pool, slot 0 being all zeros and every brick of one constant value
+//! sharing one slot, so memory follows the voxels that vary. Both answer `voxel` and
+//! `lookup` with the same values bit for bit; the dense form is the special case
+//! that small grids keep (one indirection fewer per lookup).
 
 use glam::{UVec3, Vec3};
 
@@ -73,11 +80,49 @@ impl Bounds3 {
     }
 }
 
+/// Edge of a sparse grid's brick, in voxels.
+pub const BRICK: u32 = 8;
+const BRICK_LOG2: u32 = 3;
+const BRICK_VOXELS: usize = (BRICK * BRICK * BRICK) as usize;
+
+/// Bricks of a sparse grid: `table` (x fastest over `bdims`) holds a slot per brick,
+/// `pool` the slots' values (slot * 512 + x + 8 y + 64 z within the brick).
+#[derive(Clone, Debug)]
+struct Bricks {
+    bdims: UVec3,
+    table: Vec<u32>,
+    pool: Vec<f32>,
+    /// The largest value of each slot.
+    slot_max: Vec<f32>,
+    /// Slots whose values are all equal (0 is the zero brick).
+    constant: Vec<bool>,
+}
+
+impl Bricks {
+    #[inline(always)]
+    fn slot_of(&self, x: u32, y: u32, z: u32) -> usize {
+        let b = self.bdims;
+        self.table[((x >> BRICK_LOG2) + b.x * ((y >> BRICK_LOG2) + b.y * (z >> BRICK_LOG2))) as usize] as usize
+    }
+
+    #[inline(always)]
+    fn voxel(&self, x: u32, y: u32, z: u32) -> f32 {
+        let m = BRICK - 1;
+        self.pool[self.slot_of(x, y, z) * BRICK_VOXELS + ((x & m) + BRICK * ((y & m) + BRICK * (z & m))) as usize]
+    }
+}
+
+#[derive(Clone, Debug)]
+enum Storage {
+    Dense(Vec<f32>),
+    Sparse(Bricks),
+}
+
 /// A validated density grid.
 #[derive(Clone, Debug)]
 pub struct DensityGrid {
     dims: UVec3,
-    data: Vec<f32>,
+    storage: Storage,
     origin: Vec3,
     voxel_size: Vec3,
     inv_voxel_size: Vec3,
@@ -113,7 +158,259 @@ impl DensityGrid {
             }
             max_value = max_value.max(v);
         }
-        Ok(DensityGrid { dims, data, origin, voxel_size, inv_voxel_size: voxel_size.recip(), max_value })
+        Ok(DensityGrid {
+            dims,
+            storage: Storage::Dense(data),
+            origin,
+            voxel_size,
+            inv_voxel_size: voxel_size.recip(),
+            max_value,
+        })
+    }
+
+    fn check_placement(dims: UVec3, origin: Vec3, voxel_size: Vec3) -> Result<(), GridError> {
+        if dims.min_element() == 0 {
+            return Err(GridError::EmptyDims(dims.x, dims.y, dims.z));
+        }
+        if !voxel_size.is_finite() || voxel_size.min_element() <= 0.0 {
+            return Err(GridError::BadVoxelSize(voxel_size.to_array()));
+        }
+        if !origin.is_finite() {
+            return Err(GridError::BadOrigin(origin.to_array()));
+        }
+        Ok(())
+    }
+
+    /// Samples `f(world position of the voxel centre)` brick by brick into a sparse
+    /// grid over `bounds`, never holding the dense box. `may_be_nonzero(brick box)`
+    /// is a conservative test: a brick it rejects is stored as zeros without calling
+    /// `f`. Bricks are evaluated in parallel and stored in table order, so the result
+    /// does not depend on the thread count.
+    pub fn from_fn_sparse(
+        dims: UVec3,
+        bounds: Bounds3,
+        may_be_nonzero: impl Fn(Bounds3) -> bool + Sync,
+        f: impl Fn(Vec3) -> f32 + Sync,
+    ) -> Result<Self, GridError> {
+        use rayon::prelude::*;
+        if !(bounds.min.is_finite() && bounds.max.is_finite()) || bounds.extent().min_element() <= 0.0 {
+            return Err(GridError::BadBounds { min: bounds.min.to_array(), max: bounds.max.to_array() });
+        }
+        if dims.min_element() == 0 {
+            return Err(GridError::EmptyDims(dims.x, dims.y, dims.z));
+        }
+        let vs = bounds.extent() / dims.as_vec3();
+        let mut builder = SparseBuilder::new(dims, bounds.min, vs)?;
+        let bd = builder.bricks.bdims;
+        let brick_box = |b: UVec3| {
+            let lo = b * BRICK;
+            let hi = (lo + BRICK).min(dims);
+            (lo, hi, Bounds3::new(bounds.min + lo.as_vec3() * vs, bounds.min + hi.as_vec3() * vs))
+        };
+        // The bricks the test accepts bound the slots needed: reserving them up front
+        // keeps the pool from being reallocated (and copied) as it grows.
+        let accepted: Vec<bool> = (0..bd.x * bd.y * bd.z)
+            .into_par_iter()
+            .map(|i| may_be_nonzero(brick_box(UVec3::new(i % bd.x, (i / bd.x) % bd.y, i / (bd.x * bd.y))).2))
+            .collect();
+        builder.reserve_slots(accepted.iter().filter(|&&a| a).count() + 1);
+        // One z layer of bricks at a time bounds the memory held outside the pool.
+        for bz in 0..bd.z {
+            let layer: Vec<Option<Vec<f32>>> = (0..bd.x * bd.y)
+                .into_par_iter()
+                .map(|i| {
+                    let (bx, by) = (i % bd.x, i / bd.x);
+                    let (lo, hi, _) = brick_box(UVec3::new(bx, by, bz));
+                    if !accepted[(i + bd.x * bd.y * bz) as usize] {
+                        return None;
+                    }
+                    let mut v = vec![0.0f32; BRICK_VOXELS];
+                    for z in lo.z..hi.z {
+                        for y in lo.y..hi.y {
+                            for x in lo.x..hi.x {
+                                let p = bounds.min + (Vec3::new(x as f32, y as f32, z as f32) + 0.5) * vs;
+                                v[((x - lo.x) + BRICK * ((y - lo.y) + BRICK * (z - lo.z))) as usize] = f(p);
+                            }
+                        }
+                    }
+                    Some(v)
+                })
+                .collect();
+            for (i, v) in layer.into_iter().enumerate() {
+                if let Some(v) = v {
+                    builder.set_brick(UVec3::new(i as u32 % bd.x, i as u32 / bd.x, bz), &v)?;
+                }
+            }
+        }
+        builder.finish()
+    }
+
+    /// The same values in sparse storage (bricks of [`BRICK`]^3).
+    pub fn to_sparse(&self) -> DensityGrid {
+        if self.is_sparse() {
+            return self.clone();
+        }
+        let mut builder = SparseBuilder::new(self.dims, self.origin, self.voxel_size).expect("validated placement");
+        let bd = builder.bricks.bdims;
+        let mut v = vec![0.0f32; BRICK_VOXELS];
+        for bz in 0..bd.z {
+            for by in 0..bd.y {
+                for bx in 0..bd.x {
+                    let lo = UVec3::new(bx, by, bz) * BRICK;
+                    v.fill(0.0);
+                    for z in lo.z..(lo.z + BRICK).min(self.dims.z) {
+                        for y in lo.y..(lo.y + BRICK).min(self.dims.y) {
+                            for x in lo.x..(lo.x + BRICK).min(self.dims.x) {
+                                v[((x - lo.x) + BRICK * ((y - lo.y) + BRICK * (z - lo.z))) as usize] =
+                                    self.voxel(x, y, z);
+                            }
+                        }
+                    }
+                    builder.set_brick(UVec3::new(bx, by, bz), &v).expect("validated values");
+                }
+            }
+        }
+        builder.finish().expect("validated values")
+    }
+
+    /// The same values placed elsewhere: `origin` its minimum corner, `voxel_size`
+    /// per axis.
+    pub fn placed(mut self, origin: Vec3, voxel_size: Vec3) -> Result<Self, GridError> {
+        Self::check_placement(self.dims, origin, voxel_size)?;
+        self.origin = origin;
+        self.voxel_size = voxel_size;
+        self.inv_voxel_size = voxel_size.recip();
+        Ok(self)
+    }
+
+    /// Whether the grid stores bricks.
+    pub fn is_sparse(&self) -> bool {
+        matches!(self.storage, Storage::Sparse(_))
+    }
+
+    /// The dense values (x fastest), where the grid is dense.
+    pub fn dense_data(&self) -> Option<&[f32]> {
+        match &self.storage {
+            Storage::Dense(d) => Some(d),
+            Storage::Sparse(_) => None,
+        }
+    }
+
+    /// Every voxel value, x fastest (allocates the dense box for a sparse grid).
+    pub fn to_dense_vec(&self) -> Vec<f32> {
+        match &self.storage {
+            Storage::Dense(d) => d.clone(),
+            Storage::Sparse(_) => {
+                let n = self.dims;
+                let mut out = Vec::with_capacity(n.x as usize * n.y as usize * n.z as usize);
+                for z in 0..n.z {
+                    for y in 0..n.y {
+                        for x in 0..n.x {
+                            out.push(self.voxel(x, y, z));
+                        }
+                    }
+                }
+                out
+            }
+        }
+    }
+
+    /// Bricks per axis ([`BRICK`]^3 voxels each, the last ones cut by the bounds).
+    pub fn brick_dims(&self) -> UVec3 {
+        (self.dims + BRICK - 1) / BRICK
+    }
+
+    /// Whether every voxel of brick `b` is zero (answered from the table for a
+    /// sparse grid, by reading the voxels for a dense one).
+    pub fn brick_is_zero(&self, b: UVec3) -> bool {
+        match &self.storage {
+            Storage::Sparse(br) => br.table[(b.x + br.bdims.x * (b.y + br.bdims.y * b.z)) as usize] == 0,
+            Storage::Dense(_) => self.brick_max(b) == 0.0,
+        }
+    }
+
+    /// The largest voxel value in brick `b`.
+    pub fn brick_max(&self, b: UVec3) -> f32 {
+        match &self.storage {
+            Storage::Sparse(br) => {
+                br.slot_max[br.table[(b.x + br.bdims.x * (b.y + br.bdims.y * b.z)) as usize] as usize]
+            }
+            Storage::Dense(_) => {
+                let lo = b * BRICK;
+                let hi = (lo + BRICK).min(self.dims);
+                let mut m = 0.0f32;
+                for z in lo.z..hi.z {
+                    for y in lo.y..hi.y {
+                        for x in lo.x..hi.x {
+                            m = m.max(self.voxel(x, y, z));
+                        }
+                    }
+                }
+                m
+            }
+        }
+    }
+
+    /// The largest voxel value in the box `lo ..= hi` (grid voxel indices, inside the
+    /// grid). A sparse grid answers whole zero, constant and fully covered bricks from
+    /// their slots and reads only the voxels of partly covered ones.
+    pub fn max_in_box(&self, lo: UVec3, hi: UVec3) -> f32 {
+        let hi = hi.min(self.dims - 1);
+        if lo.cmpgt(hi).any() {
+            return 0.0;
+        }
+        let Storage::Sparse(br) = &self.storage else {
+            let mut m = 0.0f32;
+            for z in lo.z..=hi.z {
+                for y in lo.y..=hi.y {
+                    for x in lo.x..=hi.x {
+                        m = m.max(self.voxel(x, y, z));
+                    }
+                }
+            }
+            return m;
+        };
+        let (b0, b1) = (lo / BRICK, hi / BRICK);
+        let mut m = 0.0f32;
+        for bz in b0.z..=b1.z {
+            for by in b0.y..=b1.y {
+                for bx in b0.x..=b1.x {
+                    let b = UVec3::new(bx, by, bz);
+                    let slot = br.table[(bx + br.bdims.x * (by + br.bdims.y * bz)) as usize] as usize;
+                    let smax = br.slot_max[slot];
+                    if smax <= m {
+                        continue;
+                    }
+                    let (blo, bhi) = (b * BRICK, b * BRICK + (BRICK - 1));
+                    if br.constant[slot] || (lo.cmple(blo).all() && hi.cmpge(bhi).all()) {
+                        m = smax;
+                        continue;
+                    }
+                    let (a, c) = (lo.max(blo) - blo, hi.min(bhi) - blo);
+                    let base = slot * BRICK_VOXELS;
+                    for z in a.z..=c.z {
+                        for y in a.y..=c.y {
+                            for x in a.x..=c.x {
+                                m = m.max(br.pool[base + (x + BRICK * (y + BRICK * z)) as usize]);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        m
+    }
+
+    /// Bricks that are not all zero in a sparse grid's table (every brick of a dense
+    /// grid).
+    pub fn stored_bricks(&self) -> usize {
+        match &self.storage {
+            Storage::Sparse(br) => br.table.iter().filter(|&&s| s != 0).count(),
+            Storage::Dense(_) => {
+                let b = self.brick_dims();
+                (b.x * b.y * b.z) as usize
+            }
+        }
     }
 
     /// Builds a grid whose voxels exactly tile `bounds`.
@@ -146,9 +443,6 @@ impl DensityGrid {
     pub fn dims(&self) -> UVec3 {
         self.dims
     }
-    pub fn data(&self) -> &[f32] {
-        &self.data
-    }
     pub fn origin(&self) -> Vec3 {
         self.origin
     }
@@ -173,7 +467,12 @@ impl DensityGrid {
 
     #[inline]
     pub fn voxel(&self, x: u32, y: u32, z: u32) -> f32 {
-        self.data[(x as usize) + self.dims.x as usize * (y as usize + self.dims.y as usize * z as usize)]
+        match &self.storage {
+            Storage::Dense(d) => {
+                d[(x as usize) + self.dims.x as usize * (y as usize + self.dims.y as usize * z as usize)]
+            }
+            Storage::Sparse(b) => b.voxel(x, y, z),
+        }
     }
 
     /// Voxel value with zero outside the index range.
@@ -205,13 +504,34 @@ impl DensityGrid {
         let f = u - Vec3::new(x as f32, y as f32, z as f32);
         let (nx, ny, nz) = (self.dims.x as i32, self.dims.y as i32, self.dims.z as i32);
         let (c000, c100, c010, c110, c001, c101, c011, c111);
-        if x >= 0 && y >= 0 && z >= 0 && x + 1 < nx && y + 1 < ny && z + 1 < nz {
-            // Fast path: all eight corners inside.
+        let inside = x >= 0 && y >= 0 && z >= 0 && x + 1 < nx && y + 1 < ny && z + 1 < nz;
+        // Fast path: all eight corners inside (and, sparse, inside one brick).
+        let fast = match &self.storage {
+            Storage::Dense(d) if inside => {
+                let sy = nx as usize;
+                let sz = (nx * ny) as usize;
+                Some((d.as_slice(), x as usize + sy * y as usize + sz * z as usize, sy, sz))
+            }
+            Storage::Sparse(b)
+                if inside && {
+                    let m = BRICK as i32 - 1;
+                    (x & m) < m && (y & m) < m && (z & m) < m
+                } =>
+            {
+                let m = BRICK - 1;
+                let (xu, yu, zu) = (x as u32, y as u32, z as u32);
+                let local = (xu & m) + BRICK * ((yu & m) + BRICK * (zu & m));
+                Some((
+                    b.pool.as_slice(),
+                    b.slot_of(xu, yu, zu) * BRICK_VOXELS + local as usize,
+                    BRICK as usize,
+                    (BRICK * BRICK) as usize,
+                ))
+            }
+            _ => None,
+        };
+        if let Some((d, i, sy, sz)) = fast {
             let sx = 1usize;
-            let sy = nx as usize;
-            let sz = (nx * ny) as usize;
-            let i = x as usize + sy * y as usize + sz * z as usize;
-            let d = &self.data;
             c000 = d[i];
             c100 = d[i + sx];
             c010 = d[i + sy];
@@ -220,6 +540,29 @@ impl DensityGrid {
             c101 = d[i + sz + sx];
             c011 = d[i + sz + sy];
             c111 = d[i + sz + sy + sx];
+        } else if let (Storage::Sparse(b), true) = (&self.storage, inside) {
+            // Inside, across brick faces: the (up to eight) bricks' slots, then the
+            // corners within them.
+            let m = BRICK - 1;
+            let (xu, yu, zu) = (x as u32, y as u32, z as u32);
+            let bd = b.bdims;
+            let (bx0, bx1) = (xu >> BRICK_LOG2, (xu + 1) >> BRICK_LOG2);
+            let (by0, by1) = ((yu >> BRICK_LOG2) * bd.x, ((yu + 1) >> BRICK_LOG2) * bd.x);
+            let (bz0, bz1) = ((zu >> BRICK_LOG2) * bd.x * bd.y, ((zu + 1) >> BRICK_LOG2) * bd.x * bd.y);
+            let (lx0, lx1) = (xu & m, (xu + 1) & m);
+            let (ly0, ly1) = ((yu & m) * BRICK, ((yu + 1) & m) * BRICK);
+            let (lz0, lz1) = ((zu & m) * BRICK * BRICK, ((zu + 1) & m) * BRICK * BRICK);
+            let at = |bx: u32, by: u32, bz: u32, l: u32| {
+                b.pool[b.table[(bx + by + bz) as usize] as usize * BRICK_VOXELS + l as usize]
+            };
+            c000 = at(bx0, by0, bz0, lx0 + ly0 + lz0);
+            c100 = at(bx1, by0, bz0, lx1 + ly0 + lz0);
+            c010 = at(bx0, by1, bz0, lx0 + ly1 + lz0);
+            c110 = at(bx1, by1, bz0, lx1 + ly1 + lz0);
+            c001 = at(bx0, by0, bz1, lx0 + ly0 + lz1);
+            c101 = at(bx1, by0, bz1, lx1 + ly0 + lz1);
+            c011 = at(bx0, by1, bz1, lx0 + ly1 + lz1);
+            c111 = at(bx1, by1, bz1, lx1 + ly1 + lz1);
         } else {
             if x < -1 || y < -1 || z < -1 || x >= nx || y >= ny || z >= nz {
                 return 0.0;
@@ -260,10 +603,248 @@ impl DensityGrid {
         m
     }
 
-    /// Memory held by the voxel values, in bytes.
+    /// Memory held by the voxel values (and a sparse grid's table), in bytes.
     pub fn memory_bytes(&self) -> usize {
-        self.data.len() * std::mem::size_of::<f32>()
+        match &self.storage {
+            Storage::Dense(d) => d.len() * std::mem::size_of::<f32>(),
+            Storage::Sparse(b) => {
+                (b.table.len() + b.pool.len() + b.slot_max.len()) * std::mem::size_of::<f32>() + b.constant.len()
+            }
+        }
     }
+}
+
+/// Fills a sparse grid brick by brick or voxel by voxel, without the dense box: bricks
+/// start as zeros, and a brick gets a slot of its own on the first write that makes
+/// it vary. Values are checked as they arrive (finite, >= 0).
+pub struct SparseBuilder {
+    dims: UVec3,
+    origin: Vec3,
+    voxel_size: Vec3,
+    bricks: Bricks,
+    /// Slot of each constant value seen so far (by its bits).
+    constants: std::collections::HashMap<u32, u32>,
+}
+
+impl SparseBuilder {
+    pub fn new(dims: UVec3, origin: Vec3, voxel_size: Vec3) -> Result<Self, GridError> {
+        DensityGrid::check_placement(dims, origin, voxel_size)?;
+        let bdims = (dims + BRICK - 1) / BRICK;
+        let bricks = Bricks {
+            bdims,
+            table: vec![0; bdims.x as usize * bdims.y as usize * bdims.z as usize],
+            pool: vec![0.0; BRICK_VOXELS],
+            slot_max: vec![0.0],
+            constant: vec![true],
+        };
+        let mut constants = std::collections::HashMap::new();
+        constants.insert(0.0f32.to_bits(), 0);
+        Ok(SparseBuilder { dims, origin, voxel_size, bricks, constants })
+    }
+
+    pub fn dims(&self) -> UVec3 {
+        self.dims
+    }
+
+    fn check(&self, x: u32, y: u32, z: u32, v: f32) -> Result<(), GridError> {
+        if v >= 0.0 && v.is_finite() {
+            Ok(())
+        } else if v.is_finite() {
+            Err(GridError::Negative { x, y, z, value: v })
+        } else {
+            Err(GridError::NonFinite { x, y, z, value: v })
+        }
+    }
+
+    fn constant_slot(&mut self, v: f32) -> u32 {
+        // -0.0 and 0.0 are one value for a density.
+        let v = if v == 0.0 { 0.0 } else { v };
+        if let Some(&s) = self.constants.get(&v.to_bits()) {
+            return s;
+        }
+        let s = self.bricks.slot_max.len() as u32;
+        self.reserve_slot();
+        self.bricks.pool.extend(std::iter::repeat_n(v, BRICK_VOXELS));
+        self.bricks.slot_max.push(v);
+        self.bricks.constant.push(true);
+        self.constants.insert(v.to_bits(), s);
+        s
+    }
+
+    /// Reserves room for `slots` more slots in one allocation advised for huge pages
+    /// (address space only: pages are touched as slots are filled). Where the system
+    /// refuses that much address space, as much as it grants.
+    pub fn reserve_slots(&mut self, slots: usize) {
+        let mut want = slots.saturating_mul(BRICK_VOXELS);
+        let pool = &mut self.bricks.pool;
+        while want > BRICK_VOXELS && pool.try_reserve_exact(want).is_err() {
+            want /= 2;
+        }
+        advise_huge_pages(pool);
+    }
+
+    /// Room for one more slot in the pool; when the pool grows, the new allocation is
+    /// advised for huge pages before its new pages are touched.
+    fn reserve_slot(&mut self) {
+        let pool = &mut self.bricks.pool;
+        if pool.capacity() - pool.len() < BRICK_VOXELS {
+            pool.reserve(BRICK_VOXELS.max(pool.len() / 2));
+            advise_huge_pages(pool);
+        }
+    }
+
+    #[inline]
+    fn brick_index(&self, b: UVec3) -> usize {
+        let d = self.bricks.bdims;
+        (b.x + d.x * (b.y + d.y * b.z)) as usize
+    }
+
+    /// Sets brick `b` from its 512 values (x fastest within the brick; values beyond
+    /// the grid's bounds are ignored and read as zero).
+    pub fn set_brick(&mut self, b: UVec3, values: &[f32]) -> Result<(), GridError> {
+        assert_eq!(values.len(), BRICK_VOXELS);
+        let lo = b * BRICK;
+        let hi = (lo + BRICK).min(self.dims);
+        let mut first = None;
+        let mut uniform = true;
+        let mut m = 0.0f32;
+        let mut clean = [0.0f32; BRICK_VOXELS];
+        for z in lo.z..hi.z {
+            for y in lo.y..hi.y {
+                for x in lo.x..hi.x {
+                    let i = ((x - lo.x) + BRICK * ((y - lo.y) + BRICK * (z - lo.z))) as usize;
+                    let v = values[i];
+                    self.check(x, y, z, v)?;
+                    clean[i] = v;
+                    m = m.max(v);
+                    match first {
+                        None => first = Some(v),
+                        Some(f) => uniform &= f == v,
+                    }
+                }
+            }
+        }
+        // A brick cut by the bounds is uniform only if it covers no voxel outside.
+        let whole = hi - lo == UVec3::splat(BRICK);
+        let slot = if uniform && (whole || first == Some(0.0)) {
+            self.constant_slot(first.unwrap_or(0.0))
+        } else {
+            let s = self.bricks.slot_max.len() as u32;
+            self.reserve_slot();
+            self.bricks.pool.extend_from_slice(&clean);
+            self.bricks.slot_max.push(m);
+            self.bricks.constant.push(false);
+            s
+        };
+        let i = self.brick_index(b);
+        self.bricks.table[i] = slot;
+        Ok(())
+    }
+
+    /// Sets one voxel.
+    pub fn put(&mut self, x: u32, y: u32, z: u32, v: f32) -> Result<(), GridError> {
+        self.check(x, y, z, v)?;
+        let bi = self.brick_index(UVec3::new(x, y, z) / BRICK);
+        let mut slot = self.bricks.table[bi] as usize;
+        if self.bricks.constant[slot] {
+            let old = self.bricks.pool[slot * BRICK_VOXELS];
+            if old.to_bits() == v.to_bits() {
+                return Ok(());
+            }
+            // The brick starts to vary: give it a slot of its own. Its voxels beyond
+            // the bounds must stay zero.
+            let lo = UVec3::new(x, y, z) / BRICK * BRICK;
+            let mut vals = [0.0f32; BRICK_VOXELS];
+            for lz in 0..BRICK {
+                for ly in 0..BRICK {
+                    for lx in 0..BRICK {
+                        if (lo + UVec3::new(lx, ly, lz)).cmplt(self.dims).all() {
+                            vals[(lx + BRICK * (ly + BRICK * lz)) as usize] = old;
+                        }
+                    }
+                }
+            }
+            slot = self.bricks.slot_max.len();
+            self.reserve_slot();
+            self.bricks.pool.extend_from_slice(&vals);
+            self.bricks.slot_max.push(old);
+            self.bricks.constant.push(false);
+            self.bricks.table[bi] = slot as u32;
+        }
+        let m = BRICK - 1;
+        self.bricks.pool[slot * BRICK_VOXELS + ((x & m) + BRICK * ((y & m) + BRICK * (z & m))) as usize] = v;
+        self.bricks.slot_max[slot] = self.bricks.slot_max[slot].max(v);
+        Ok(())
+    }
+
+    /// Sets every voxel of the box `lo ..= hi` (clipped to the grid) to `v`: whole
+    /// bricks share the constant slot, partly covered ones are written voxel by voxel.
+    pub fn fill(&mut self, lo: UVec3, hi: UVec3, v: f32) -> Result<(), GridError> {
+        let hi = hi.min(self.dims - 1);
+        if lo.cmpgt(hi).any() {
+            return Ok(());
+        }
+        self.check(lo.x, lo.y, lo.z, v)?;
+        let (b0, b1) = (lo / BRICK, hi / BRICK);
+        for bz in b0.z..=b1.z {
+            for by in b0.y..=b1.y {
+                for bx in b0.x..=b1.x {
+                    let b = UVec3::new(bx, by, bz);
+                    let (blo, bhi) = (b * BRICK, (b * BRICK + BRICK).min(self.dims) - 1);
+                    let whole_brick = bhi - blo == UVec3::splat(BRICK - 1);
+                    if whole_brick && lo.cmple(blo).all() && hi.cmpge(bhi).all() {
+                        let s = self.constant_slot(v);
+                        let i = self.brick_index(b);
+                        self.bricks.table[i] = s;
+                        continue;
+                    }
+                    let (a, c) = (blo.max(lo), bhi.min(hi));
+                    for z in a.z..=c.z {
+                        for y in a.y..=c.y {
+                            for x in a.x..=c.x {
+                                self.put(x, y, z, v)?;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub fn finish(self) -> Result<DensityGrid, GridError> {
+        let max_value = self.bricks.table.iter().map(|&s| self.bricks.slot_max[s as usize]).fold(0.0f32, f32::max);
+        Ok(DensityGrid {
+            dims: self.dims,
+            storage: Storage::Sparse(self.bricks),
+            origin: self.origin,
+            voxel_size: self.voxel_size,
+            inv_voxel_size: self.voxel_size.recip(),
+            max_value,
+        })
+    }
+}
+
+/// Asks the kernel to back `v`'s allocation with 2 MiB pages (transparent huge pages
+/// in `madvise` mode), so the pages touched from now on are huge: a big grid's lookups
+/// then miss the TLB far less often. The advice follows the mapping when a growing
+/// Vec is moved by `mremap`, so nothing is copied. Harmless where declined.
+fn advise_huge_pages(v: &mut Vec<f32>) {
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE: usize = 2 << 20;
+        let base = v.as_mut_ptr() as usize;
+        let start = base.next_multiple_of(HUGE);
+        let end = (base + v.capacity() * std::mem::size_of::<f32>()) / HUGE * HUGE;
+        if end > start {
+            // SAFETY: the range lies inside `v`'s allocation; madvise only advises and
+            // never changes the memory's contents or validity.
+            unsafe {
+                libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_HUGEPAGE);
+            }
+        }
+    }
+    let _ = v;
 }
 
 /// floor() as an integer without a libm call (x86-64 without SSE4.1 has no rounding
@@ -360,5 +941,126 @@ mod tests {
         // On a face: halfway between the last voxel centre (1) and the outside (0).
         assert!((g.lookup(Vec3::new(0.0, 0.0, 0.5)) - 0.5).abs() < 1e-6);
         assert!((g.lookup(Vec3::ZERO) - 1.0).abs() < 1e-6);
+    }
+
+    /// A grid with empty regions, constant regions and noise, with dims that are not
+    /// multiples of the brick edge.
+    fn patchy(dims: UVec3, seed: u64) -> DensityGrid {
+        let mut rng = crate::Rng::new(seed, 0, 0);
+        let n = (dims.x * dims.y * dims.z) as usize;
+        let mut data = vec![0.0f32; n];
+        for (i, v) in data.iter_mut().enumerate() {
+            let (x, y, z) = unflatten(i, dims);
+            let r = rng.uniform();
+            *v = if z < 9 {
+                0.0
+            } else if x < 16 && y < 16 && z >= 16 {
+                0.75
+            } else if r < 0.4 {
+                0.0
+            } else {
+                r
+            };
+        }
+        DensityGrid::new(dims, data, Vec3::new(-1.0, 0.5, 2.0), Vec3::new(0.1, 0.07, 0.05)).unwrap()
+    }
+
+    /// Sparse storage answers every voxel and every trilinear lookup (inside bricks,
+    /// across brick faces, at the grid's faces and outside) with the dense grid's
+    /// values bit for bit, and shares one slot among the constant bricks.
+    #[test]
+    fn sparse_matches_dense_bit_for_bit() {
+        let dense = patchy(UVec3::new(29, 21, 35), 3);
+        let sparse = dense.to_sparse();
+        assert!(sparse.is_sparse() && !dense.is_sparse());
+        assert_eq!(sparse.max_value(), dense.max_value());
+        assert_eq!(sparse.max_on_boundary(), dense.max_on_boundary());
+        assert_eq!(sparse.to_dense_vec(), dense.to_dense_vec());
+        let mut rng = crate::Rng::new(4, 0, 0);
+        let sb = dense.support_bounds();
+        for _ in 0..200_000 {
+            let t = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 1.2 - 0.1;
+            let p = sb.min + t * sb.extent();
+            assert_eq!(sparse.lookup(p).to_bits(), dense.lookup(p).to_bits(), "{p}");
+        }
+        // Bricks 0 and 1 in z are zero (z < 9 is empty, brick 1 holds z 8..16 with
+        // z = 8 empty but not z >= 9), and the constant 0.75 block shares a slot.
+        assert!(sparse.brick_is_zero(UVec3::new(0, 0, 0)));
+        assert!(!sparse.brick_is_zero(UVec3::new(0, 0, 1)));
+        assert_eq!(sparse.brick_max(UVec3::new(1, 1, 2)), 0.75);
+        let bd = dense.brick_dims();
+        for bz in 0..bd.z {
+            for by in 0..bd.y {
+                for bx in 0..bd.x {
+                    let b = UVec3::new(bx, by, bz);
+                    assert_eq!(sparse.brick_max(b), dense.brick_max(b));
+                    assert_eq!(sparse.brick_is_zero(b), dense.brick_is_zero(b));
+                }
+            }
+        }
+        if let Storage::Sparse(b) = &sparse.storage {
+            let distinct: std::collections::HashSet<u32> = b.table.iter().copied().collect();
+            // 2 x 2 x 2 bricks of 0.75 (z 16..32) share one slot.
+            let shared = b.table.iter().filter(|&&s| b.constant[s as usize] && s != 0).count();
+            assert_eq!(shared, 8);
+            assert_eq!(distinct.len(), b.slot_max.len());
+        }
+    }
+
+    /// Sampling brick by brick gives the dense sampling's values, skips the bricks
+    /// the test rejects (and then never calls the function there), and names a bad
+    /// voxel.
+    #[test]
+    fn from_fn_sparse_matches_from_fn() {
+        let dims = UVec3::new(40, 33, 17);
+        let b = Bounds3::new(Vec3::new(-1.0, -0.5, 0.0), Vec3::new(1.0, 0.5, 0.6));
+        let ball = |p: Vec3| (0.2 - (p - Vec3::new(0.0, 0.0, 0.3)).length()).max(0.0) * 3.0;
+        let dense = DensityGrid::from_fn(dims, b, ball).unwrap();
+        let calls = std::sync::atomic::AtomicUsize::new(0);
+        let sparse = DensityGrid::from_fn_sparse(
+            dims,
+            b,
+            |bx| bx.min.max(Vec3::new(-0.2, -0.2, 0.1)).cmple(bx.max.min(Vec3::new(0.2, 0.2, 0.5))).all(),
+            |p| {
+                calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                ball(p)
+            },
+        )
+        .unwrap();
+        assert_eq!(sparse.to_dense_vec(), dense.to_dense_vec());
+        let n = calls.into_inner();
+        assert!(n < (dims.x * dims.y * dims.z) as usize / 2, "{n} calls: the brick test skipped nothing");
+        assert!(sparse.memory_bytes() < dense.memory_bytes());
+        let e = DensityGrid::from_fn_sparse(dims, b, |_| true, |p| if p.x > 0.5 { f32::NAN } else { 0.0 }).unwrap_err();
+        assert!(matches!(e, GridError::NonFinite { x: 30, .. }), "{e}");
+    }
+
+    /// The builder: single voxels, boxes covering whole and partial bricks, a write
+    /// into a shared constant brick (which must not leak into its sharers), bad values.
+    #[test]
+    fn sparse_builder_writes() {
+        let dims = UVec3::new(20, 20, 12);
+        let mut want = vec![0.0f32; 20 * 20 * 12];
+        let mut b = SparseBuilder::new(dims, Vec3::ZERO, Vec3::ONE).unwrap();
+        let mut fill = |b: &mut SparseBuilder, lo: UVec3, hi: UVec3, v: f32| {
+            b.fill(lo, hi, v).unwrap();
+            for z in lo.z..=hi.z.min(11) {
+                for y in lo.y..=hi.y.min(19) {
+                    for x in lo.x..=hi.x.min(19) {
+                        want[(x + 20 * (y + 20 * z)) as usize] = v;
+                    }
+                }
+            }
+        };
+        fill(&mut b, UVec3::ZERO, UVec3::new(15, 15, 7), 0.5); // four whole bricks
+        fill(&mut b, UVec3::new(3, 17, 2), UVec3::new(30, 30, 30), 0.25); // partial, clipped
+        b.put(9, 9, 1, 2.0).unwrap(); // into one of the shared 0.5 bricks
+        want[9 + 20 * (9 + 20)] = 2.0;
+        assert!(matches!(b.put(1, 2, 3, -1.0), Err(GridError::Negative { x: 1, y: 2, z: 3, .. })));
+        assert!(b.fill(UVec3::ZERO, UVec3::ONE, f32::INFINITY).is_err());
+        let g = b.finish().unwrap();
+        assert_eq!(g.to_dense_vec(), want);
+        assert_eq!(g.max_value(), 2.0);
+        assert_eq!(g.voxel(1, 1, 1), 0.5, "the write leaked into a brick sharing the slot");
     }
 }

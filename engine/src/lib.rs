@@ -29,7 +29,7 @@ pub mod stats;
 
 pub use camera::Camera;
 pub use film::{Buffer, Film};
-pub use grid::{Bounds3, DensityGrid, GridError};
+pub use grid::{Bounds3, DensityGrid, GridError, SparseBuilder};
 pub use integrator::bdpt::BdptSettings;
 pub use integrator::{Integrator, MisHeuristic, Mode, PathSample, RenderSettings, Technique};
 pub use light::{Sky, Sun};

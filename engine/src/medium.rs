@@ -11,7 +11,8 @@
 //! Parameters ([`Medium::with_majorant_cells`]): `rho` the density scale, per world
 //! unit, finite and >= 0 (sigma_t = rho d); `albedo` in [0, 1] (sigma_s = albedo
 //! sigma_t); `phase` ([`crate::phase`]); `cell_voxels` the majorant cell edge in
-//! voxels, >= 1 (default [`MajorantGrid::DEFAULT_CELL_VOXELS`] = 8). Bad values are
+//! voxels, >= 1 (default [`MajorantGrid::default_cell_voxels`]: 8 up to 128^3, the
+//! same world size above). Bad values are
 //! errors naming the parameter.
 
 use crate::grid::{Bounds3, DensityGrid, floor_i32};
@@ -37,34 +38,36 @@ impl MajorantGrid {
     /// Default cell edge in voxels (see `nimbus bench render` for the trade-off).
     pub const DEFAULT_CELL_VOXELS: u32 = 8;
 
+    /// The default cell edge for a grid: [`Self::DEFAULT_CELL_VOXELS`] up to 128
+    /// voxels per axis, then growing with the grid so the cells keep their world size
+    /// (the same cloud at 1024^3 has as many cells, and as many DDA steps per ray, as at
+    /// 128^3; a multiple of the brick edge, so sparse grids build from brick maxima).
+    pub fn default_cell_voxels(grid: &DensityGrid) -> u32 {
+        let n = grid.dims().max_element();
+        Self::DEFAULT_CELL_VOXELS * ((n + 64) / 128).max(1)
+    }
+
     pub fn new(grid: &DensityGrid, cell_voxels: u32) -> Self {
+        use rayon::prelude::*;
         let b = cell_voxels.max(1);
         let n = grid.dims();
         // Support spans n + 1 voxels in index space u' in [-0.5, n + 0.5].
         let dims = (n + 1 + UVec3::splat(b - 1)) / b;
         let support = grid.support_bounds();
         let cell_size = grid.voxel_size() * b as f32;
-        let mut max_density = vec![0.0f32; (dims.x * dims.y * dims.z) as usize];
-        for cz in 0..dims.z {
-            for cy in 0..dims.y {
-                for cx in 0..dims.x {
-                    // Cell c spans u' in [-0.5 + c b, -0.5 + (c + 1) b]; the density there
-                    // depends on voxels floor(u' - 0.5) .. floor(u' - 0.5) + 1, i.e.
-                    // c b - 1 ..= (c + 1) b.
-                    let lo = |c: u32| (c as i64 * b as i64 - 1).max(0) as u32;
-                    let hi = |c: u32, nn: u32| (((c + 1) * b) as i64).min(nn as i64 - 1) as u32;
-                    let mut m = 0.0f32;
-                    for z in lo(cz)..=hi(cz, n.z) {
-                        for y in lo(cy)..=hi(cy, n.y) {
-                            for x in lo(cx)..=hi(cx, n.x) {
-                                m = m.max(grid.voxel(x, y, z));
-                            }
-                        }
-                    }
-                    max_density[(cx + dims.x * (cy + dims.y * cz)) as usize] = m;
-                }
-            }
-        }
+        // Cell c spans u' in [-0.5 + c b, -0.5 + (c + 1) b]; the density there depends
+        // on voxels floor(u' - 0.5) .. floor(u' - 0.5) + 1, i.e. c b - 1 ..= (c + 1) b:
+        // the exact maximum over them, dense or sparse.
+        let lo = |c: u32| (c as i64 * b as i64 - 1).max(0) as u32;
+        let hi = |c: u32, nn: u32| (((c + 1) * b) as i64).min(nn as i64 - 1) as u32;
+        let max_density: Vec<f32> = (0..dims.x * dims.y * dims.z)
+            .into_par_iter()
+            .map(|i| {
+                let (cx, cy, cz) = (i % dims.x, (i / dims.x) % dims.y, i / (dims.x * dims.y));
+                let (l, h) = (UVec3::new(lo(cx), lo(cy), lo(cz)), UVec3::new(hi(cx, n.x), hi(cy, n.y), hi(cz, n.z)));
+                grid.max_in_box(l, h)
+            })
+            .collect();
         MajorantGrid { dims, max_density, bounds: support, inv_cell_size: cell_size.recip() }
     }
 
@@ -249,7 +252,8 @@ const RATIO_TRACKING_RR_THRESHOLD: f32 = 0.1;
 
 impl Medium {
     pub fn new(grid: Arc<DensityGrid>, rho: f32, albedo: f32, phase: PhaseFunction) -> Result<Self, MediumError> {
-        Self::with_majorant_cells(grid, rho, albedo, phase, MajorantGrid::DEFAULT_CELL_VOXELS)
+        let cells = MajorantGrid::default_cell_voxels(&grid);
+        Self::with_majorant_cells(grid, rho, albedo, phase, cells)
     }
 
     pub fn with_majorant_cells(
@@ -541,16 +545,36 @@ mod tests {
     /// trilinear footprint across cell borders and the half-voxel taper outside.
     #[test]
     fn majorant_bounds_density() {
-        let g = random_grid(13, 3);
-        for cells in [1, 2, 4, 5] {
-            let m = MajorantGrid::new(&g, cells);
+        let dense = random_grid(13, 3);
+        let sparse = dense.to_sparse();
+        // Sparse grids answer whole bricks from their slots.
+        for (g, cells) in
+            [(&dense, 1), (&dense, 2), (&dense, 4), (&dense, 5), (&sparse, 8), (&sparse, 16), (&sparse, 5)]
+        {
+            let m = MajorantGrid::new(g, cells);
             let mut rng = Rng::new(9, cells as u64, 0);
             for _ in 0..20_000 {
                 let p = m.bounds.min + Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * m.bounds.extent();
                 let c =
                     ((p - m.bounds.min) * m.inv_cell_size).floor().as_ivec3().clamp(IVec3::ZERO, m.dims.as_ivec3() - 1);
-                assert!(g.lookup(p) <= m.cell(c) + 1e-6, "cells={cells} p={p}");
+                assert!(g.lookup(p) <= m.cell(c) + 1e-6, "cells={cells} sparse={} p={p}", g.is_sparse());
             }
+        }
+    }
+
+    /// Sparse storage builds the same majorants as dense storage, bit for bit.
+    #[test]
+    fn sparse_majorants_equal_dense() {
+        let mut rng = Rng::new(21, 0, 0);
+        let dims = UVec3::new(37, 20, 29);
+        let data: Vec<f32> = (0..dims.x * dims.y * dims.z)
+            .map(|i| if i % 37 < 12 || rng.uniform() < 0.5 { 0.0 } else { rng.uniform() })
+            .collect();
+        let dense = DensityGrid::new(dims, data, Vec3::ZERO, Vec3::splat(0.1)).unwrap();
+        let sparse = dense.to_sparse();
+        for cells in [1, 3, 8, 13, 16] {
+            let (a, b) = (MajorantGrid::new(&dense, cells), MajorantGrid::new(&sparse, cells));
+            assert_eq!(a.max_density, b.max_density, "cells {cells}");
         }
     }
 

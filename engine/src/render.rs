@@ -106,65 +106,108 @@ impl Renderer {
 
     /// Renders the next pass (one sample per pixel) unless `control` says stop.
     pub fn render_pass(&mut self, control: &RenderControl, generation: u64) -> PassOutcome {
-        let pass = self.spp();
-        let Some(samples) = self.render_pass_samples(pass, control, generation) else {
+        self.render_passes(1, control, generation)
+    }
+
+    /// How many passes [`Renderer::render_passes`] should take at once so that both
+    /// cores stay busy to the end of a batch: about 1024 tiles of work, at most 16
+    /// passes (a 256x256 image: 4 passes; 1024x1024: 1).
+    pub fn passes_per_batch(&self) -> u32 {
+        (1024 / self.tiles.len().max(1) as u32).clamp(1, 16)
+    }
+
+    /// Renders the next `count` passes as one parallel batch (the tiles of all of them
+    /// are one pool of work, so no core waits at a barrier between passes for the
+    /// slowest tile) and adds them to the film in pass order: the same image as
+    /// `count` single passes, bit for bit. All or nothing: a stop or a scene change
+    /// abandons the whole batch.
+    pub fn render_passes(&mut self, count: u32, control: &RenderControl, generation: u64) -> PassOutcome {
+        let first = self.spp();
+        let Some(passes) = self.render_passes_samples(first, count.max(1), control, generation) else {
             return PassOutcome::Cancelled;
         };
-        self.film.write().unwrap_or_else(|e| e.into_inner()).add_pass(&samples);
+        let mut film = self.film.write().unwrap_or_else(|e| e.into_inner());
+        for samples in &passes {
+            film.add_pass(samples);
+        }
         PassOutcome::Completed
     }
 
     /// Renders pass number `pass` and returns its samples in pixel order, or None if
     /// cancelled.
     pub fn render_pass_samples(&self, pass: u32, control: &RenderControl, generation: u64) -> Option<Vec<PathSample>> {
+        self.render_passes_samples(pass, 1, control, generation).map(|mut v| v.remove(0))
+    }
+
+    /// Renders passes `first .. first + count`, each in pixel order, or None if
+    /// cancelled.
+    pub fn render_passes_samples(
+        &self,
+        first: u32,
+        count: u32,
+        control: &RenderControl,
+        generation: u64,
+    ) -> Option<Vec<Vec<PathSample>>> {
         let camera = &self.scene.camera;
         let (w, h) = (camera.width(), camera.height());
-        let seed = self.integrator.settings().seed;
-        // BDPT's prediction mode: the pass's samples share one pool of light subpath
+        // BDPT's prediction mode: each pass's samples share one pool of light subpath
         // candidates.
-        let pool = self.integrator.light_pool(&self.scene, pass, w * h);
-        let tiles: Vec<Vec<PathSample>> = self
-            .tiles
-            .par_iter()
-            .map(|&(x0, y0, x1, y1)| {
-                let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
-                // BDPT's predictions are evaluated per tile, in one batch.
-                let mut deferred = Vec::new();
-                for y in y0..y1 {
-                    // Checked per row, so a stop acts within one row of samples.
-                    if control.should_abort(generation) {
-                        return None;
-                    }
-                    for x in x0..x1 {
-                        let pixel = y as u64 * w as u64 + x as u64;
-                        let mut rng = Rng::new(seed, pass as u64, pixel);
-                        let (o, d) = camera.generate_ray(x, y, Vec2::new(rng.uniform(), rng.uniform()));
-                        let first = deferred.len();
-                        out.push(self.integrator.trace_deferring(
-                            &self.scene,
-                            o,
-                            d,
-                            &mut rng,
-                            pool.as_ref(),
-                            Some(&mut deferred),
-                        ));
-                        for p in &mut deferred[first..] {
-                            p.owner = (out.len() - 1) as u32;
-                        }
-                    }
-                }
-                self.integrator.resolve_deferred(&self.scene, &mut deferred, &mut out);
-                Some(out)
+        let pools: Vec<_> = (0..count).map(|i| self.integrator.light_pool(&self.scene, first + i, w * h)).collect();
+        let nt = self.tiles.len();
+        let tiles: Vec<Vec<PathSample>> = (0..count as usize * nt)
+            .into_par_iter()
+            .map(|i| {
+                let (p, t) = (i / nt, i % nt);
+                self.render_tile(first + p as u32, self.tiles[t], pools[p].as_ref(), control, generation)
             })
             .collect::<Option<Vec<_>>>()?;
-        let mut samples = vec![PathSample::default(); (w * h) as usize];
-        for (&(x0, y0, x1, _), tile) in self.tiles.iter().zip(&tiles) {
-            let tw = (x1 - x0) as usize;
-            for (row, chunk) in tile.chunks(tw).enumerate() {
-                let start = (y0 as usize + row) * w as usize + x0 as usize;
-                samples[start..start + tw].copy_from_slice(chunk);
+        let mut out = Vec::with_capacity(count as usize);
+        for pass_tiles in tiles.chunks(nt) {
+            let mut samples = vec![PathSample::default(); (w * h) as usize];
+            for (&(x0, y0, x1, _), tile) in self.tiles.iter().zip(pass_tiles) {
+                let tw = (x1 - x0) as usize;
+                for (row, chunk) in tile.chunks(tw).enumerate() {
+                    let start = (y0 as usize + row) * w as usize + x0 as usize;
+                    samples[start..start + tw].copy_from_slice(chunk);
+                }
+            }
+            out.push(samples);
+        }
+        Some(out)
+    }
+
+    /// One tile of one pass, rows in order; None if cancelled.
+    fn render_tile(
+        &self,
+        pass: u32,
+        (x0, y0, x1, y1): (u32, u32, u32, u32),
+        pool: Option<&crate::integrator::bdpt::LightPool>,
+        control: &RenderControl,
+        generation: u64,
+    ) -> Option<Vec<PathSample>> {
+        let camera = &self.scene.camera;
+        let w = camera.width();
+        let seed = self.integrator.settings().seed;
+        let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
+        // BDPT's predictions are evaluated per tile, in one batch.
+        let mut deferred = Vec::new();
+        for y in y0..y1 {
+            // Checked per row, so a stop acts within one row of samples.
+            if control.should_abort(generation) {
+                return None;
+            }
+            for x in x0..x1 {
+                let pixel = y as u64 * w as u64 + x as u64;
+                let mut rng = Rng::new(seed, pass as u64, pixel);
+                let (o, d) = camera.generate_ray(x, y, Vec2::new(rng.uniform(), rng.uniform()));
+                let first = deferred.len();
+                out.push(self.integrator.trace_deferring(&self.scene, o, d, &mut rng, pool, Some(&mut deferred)));
+                for p in &mut deferred[first..] {
+                    p.owner = (out.len() - 1) as u32;
+                }
             }
         }
-        Some(samples)
+        self.integrator.resolve_deferred(&self.scene, &mut deferred, &mut out);
+        Some(out)
     }
 }

@@ -8,8 +8,16 @@ use rayon::prelude::*;
 use serde_json::Value;
 use std::path::PathBuf;
 
-const FIXTURES: [&str; 7] =
-    ["sphere_dense", "cloud_sparse", "transformed_zip", "multi_grid", "half_float", "half_zip", "half_sparse"];
+const FIXTURES: [&str; 8] = [
+    "sphere_dense",
+    "cloud_sparse",
+    "transformed_zip",
+    "multi_grid",
+    "half_float",
+    "half_zip",
+    "half_sparse",
+    "sparse_far",
+];
 
 fn samples_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/vdb")
@@ -36,9 +44,16 @@ fn check_grid(file: &str, grid_name: &str, requested: Option<&str>) {
     let sum = g["sum_active"].as_f64().unwrap();
     assert!((imp.sum - sum).abs() <= 1e-5 * sum.abs(), "{file}: sum {} vs {sum}", imp.sum);
     let bbox = &g["index_bbox_active"];
+    assert_eq!(imp.active_min.to_array(), ivec(&bbox[0]), "{file}: bbox min");
+    assert_eq!(imp.active_max.to_array(), ivec(&bbox[1]), "{file}: bbox max");
+    // A dense import's box is the active box; a sparse one's contains it in whole leaves.
     let hi = imp.index_min + imp.grid.dims().as_ivec3() - 1;
-    assert_eq!(imp.index_min.to_array(), ivec(&bbox[0]), "{file}: bbox min");
-    assert_eq!(hi.to_array(), ivec(&bbox[1]), "{file}: bbox max");
+    if imp.grid.is_sparse() {
+        assert!(imp.index_min.cmple(imp.active_min).all() && hi.cmpge(imp.active_max).all(), "{file}: box");
+        assert!(imp.index_min.rem_euclid(IVec3::splat(8)) == IVec3::ZERO, "{file}: box not leaf-aligned");
+    } else {
+        assert_eq!((imp.index_min, hi), (imp.active_min, imp.active_max), "{file}: box");
+    }
     // Transform: index_to_world rows.
     let m = &g["transform"]["index_to_world"];
     for a in 0..3 {
@@ -129,10 +144,40 @@ fn half_float_sparse_with_tiles() {
     }
 }
 
+/// Voxels thousands of voxels apart with tiles: an active box of 5.2e9 voxels (19 GiB
+/// as dense f32) imports sparsely in a few MiB, the 128^3 tile as shared constant
+/// bricks, and a medium over it traces the tile's exact optical depth.
+#[test]
+fn far_apart_voxels_import_sparsely() {
+    check_grid("sparse_far", "density", None);
+    let imp = read_vdb(&samples_dir().join("sparse_far.vdb"), None).unwrap();
+    assert!(imp.grid.is_sparse());
+    let d = imp.grid.dims();
+    let dense_bytes = 4 * d.x as u64 * d.y as u64 * d.z as u64;
+    assert!(dense_bytes > 16 << 30, "{d}");
+    assert!(imp.grid.memory_bytes() < 64 << 20, "{} bytes", imp.grid.memory_bytes());
+    let r = (IVec3::new(128, 0, 0) - imp.index_min).as_uvec3();
+    for (x, y, z) in [(0, 0, 0), (127, 0, 0), (0, 127, 0), (0, 0, 127), (127, 127, 127), (31, 77, 120)] {
+        assert_eq!(imp.grid.voxel(r.x + x, r.y + y, r.z + z), 0.5);
+    }
+    // Along x through the tile's middle: density 0.5 over 128 voxels of 0.001, the
+    // half-voxel tapers at both faces included (mass-preserving interpolation).
+    let rho = 10.0f32;
+    let medium =
+        engine::Medium::new(std::sync::Arc::new(imp.grid.clone()), rho, 1.0, engine::PhaseFunction::Isotropic).unwrap();
+    let (o, dir) = (glam::Vec3::new(0.1, 0.064, 0.064), glam::Vec3::X);
+    let tau = medium.optical_depth(o, dir, 0.2, 1e-5, f32::INFINITY) as f64;
+    let want = rho as f64 * 0.5 * 128.0 * 0.001;
+    assert!((tau - want).abs() < 1e-3 * want, "optical depth {tau} vs {want}");
+}
+
 fn assert_same(a: &VdbImport, b: &VdbImport, what: &str) {
     assert_eq!(a.grid.dims(), b.grid.dims(), "{what}: dims");
     assert_eq!(a.index_min, b.index_min, "{what}: index box");
-    assert!(a.grid.data().iter().zip(b.grid.data()).all(|(x, y)| x.to_bits() == y.to_bits()), "{what}: values");
+    assert!(
+        a.grid.to_dense_vec().iter().zip(&b.grid.to_dense_vec()).all(|(x, y)| x.to_bits() == y.to_bits()),
+        "{what}: values"
+    );
     assert_eq!(a.grid.origin().to_array().map(f32::to_bits), b.grid.origin().to_array().map(f32::to_bits), "{what}");
     assert_eq!(a.grid.voxel_size().to_array().map(f32::to_bits), b.grid.voxel_size().to_array().map(f32::to_bits));
     assert_eq!((a.active_voxels, a.active_tiles, a.sum.to_bits()), (b.active_voxels, b.active_tiles, b.sum.to_bits()));
@@ -214,7 +259,10 @@ fn float_grids_match_vdb_rs() {
         let want = vdb_rs_reference(data, grid);
         let got = read_vdb_bytes(data, what, Some(grid)).unwrap();
         assert_eq!((got.index_min, got.grid.dims()), (want.lo, want.dims), "{what}: box");
-        assert!(got.grid.data().iter().zip(&want.values).all(|(a, b)| a.to_bits() == b.to_bits()), "{what}: values");
+        assert!(
+            got.grid.to_dense_vec().iter().zip(&want.values).all(|(a, b)| a.to_bits() == b.to_bits()),
+            "{what}: values"
+        );
         assert_eq!(got.grid.origin().to_array().map(f32::to_bits), want.origin.to_array().map(f32::to_bits), "{what}");
         assert_eq!(got.grid.voxel_size(), want.scale.as_vec3(), "{what}");
         assert_eq!((got.voxel_size, got.translation), (want.scale, want.translation), "{what}: transform");

@@ -183,6 +183,17 @@ fn deterministic_across_thread_counts() {
     }
     let c = render(&scene, RenderSettings { seed: 1235, ..settings }, None, 3);
     assert!(a.sums(Buffer::Full) != c.sums(Buffer::Full), "the seed matters");
+    // Passes rendered as one batch (the tiles of all three in one pool of work) add
+    // up to the same film as single passes, on two threads.
+    let mut r = Renderer::new(scene.clone(), Integrator::new(settings, None).unwrap()).unwrap();
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    pool.install(|| r.render_passes(2, &RenderControl::new(), 0));
+    pool.install(|| r.render_passes(1, &RenderControl::new(), 0));
+    let batched = r.snapshot();
+    assert_eq!(batched.spp(), 3);
+    for buf in Buffer::ALL {
+        assert!(a.sums(buf) == batched.sums(buf), "{buf:?} differs between batched and single passes");
+    }
 }
 
 /// A "predictor" that path traces L_i itself: prediction mode with it must agree with

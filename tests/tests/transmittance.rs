@@ -27,8 +27,12 @@ fn cases() -> Vec<Case> {
     // Homogeneous slab, 8 voxels, thickness 0.5: normal and oblique rays, two densities.
     let (ny, h) = (8u32, 0.5f32);
     let slab = Arc::new(slab_grid(ny, h));
+    // The same slab in sparse bricks (majorants from brick maxima).
+    let sparse_slab = Arc::new(slab.to_sparse());
     for &rho in &[2.0f32, 5.0] {
-        for &angle in &[0.0f32, 50.0] {
+        for (&angle, (name, grid)) in
+            [0.0f32, 50.0, 50.0].iter().zip([("slab", &slab), ("slab", &slab), ("slab, sparse", &sparse_slab)])
+        {
             let a = angle.to_radians();
             let d = Vec3::new(a.sin(), a.cos(), 0.0);
             let o = Vec3::new(0.0, -1.0, 0.0);
@@ -39,8 +43,8 @@ fn cases() -> Vec<Case> {
             let step = vs / 8.0 / a.cos() as f64;
             let tol = 4.0 * step * step / 8.0 * (rho as f64 / vs) * (1.0 / a.cos() as f64) + 1e-5 * tau;
             out.push(Case {
-                name: "slab",
-                medium: Medium::new(slab.clone(), rho, 1.0, PhaseFunction::Isotropic).unwrap(),
+                name,
+                medium: Medium::new(grid.clone(), rho, 1.0, PhaseFunction::Isotropic).unwrap(),
                 o,
                 d,
                 t_max: f32::INFINITY,
@@ -64,12 +68,15 @@ fn cases() -> Vec<Case> {
         let tau = rho as f64 * integral_dy / d.y as f64;
         // Tight (default) and loose (one cell for the whole grid) majorants: the loose
         // one makes ratio tracking multiply many factors below 1 and play roulette.
-        for (name, cells) in
-            [("ramp", engine::medium::MajorantGrid::DEFAULT_CELL_VOXELS), ("ramp, loose majorant", 1024)]
-        {
+        let sparse_ramp = Arc::new(ramp.to_sparse());
+        for (name, grid, cells) in [
+            ("ramp", &ramp, engine::medium::MajorantGrid::DEFAULT_CELL_VOXELS),
+            ("ramp, loose majorant", &ramp, 1024),
+            ("ramp, sparse", &sparse_ramp, engine::medium::MajorantGrid::DEFAULT_CELL_VOXELS),
+        ] {
             out.push(Case {
                 name,
-                medium: Medium::with_majorant_cells(ramp.clone(), rho, 1.0, PhaseFunction::Isotropic, cells).unwrap(),
+                medium: Medium::with_majorant_cells(grid.clone(), rho, 1.0, PhaseFunction::Isotropic, cells).unwrap(),
                 o,
                 d,
                 t_max,

@@ -96,7 +96,7 @@ pub fn write_grid(grid: &DensityGrid, out: &Path) -> Result<()> {
     match out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
         Some("vol") => output::write_bytes_atomically(out, &output::mitsuba_vol_bytes(grid)),
         Some("raw") => {
-            let data: Vec<u8> = grid.data().iter().flat_map(|v| v.to_le_bytes()).collect();
+            let data: Vec<u8> = grid.to_dense_vec().iter().flat_map(|v| v.to_le_bytes()).collect();
             output::write_bytes_atomically(out, &data)?;
             let b = grid.bounds();
             let json = serde_json::json!({

@@ -1,4 +1,4 @@
-//! Reading OpenVDB files into a dense grid, with a reader of our own.
+//! Reading OpenVDB files into a density grid, with a reader of our own.
 //!
 //! Nimbus imports float grids (`Tree_float_5_4_3`) whose values are stored as 32-bit
 //! floats or as 16-bit half floats (`Tree_float_5_4_3_HalfFloat`, what Houdini and
@@ -11,18 +11,21 @@
 //!    is checked against the bytes that remain before it is used, and each grid's
 //!    active voxels are counted and bounded from the masks alone. Nothing is
 //!    decompressed.
-//! 2. Once the active bounding box is known to fit [`MAX_DENSE_VOXELS`], the chosen
-//!    grid's tree is walked again: each value array is decompressed into a buffer of
-//!    the size the masks give (at most 32^3 values), and the active voxels and tiles
-//!    (8^3 and 128^3) are written into a dense grid covering the active bounding box.
+//! 2. Once the active bounding box is known, the chosen grid's tree is walked again:
+//!    each value array is decompressed into a buffer of the size the masks give (at
+//!    most 32^3 values), and the active voxels and tiles (8^3 and 128^3) are written
+//!    into a grid covering the active bounding box: dense up to [`MAX_DENSE_VOXELS`],
+//!    above that sparse bricks of 8^3 aligned with the file's leaves, so a tile becomes
+//!    shared constant bricks and memory follows the active voxels; the dense box of a
+//!    big grid is never allocated.
 //!
 //! Still refused, with a message naming the file and the reason: other value types,
 //! maps other than UniformScaleMap, UniformScaleTranslateMap and ScaleTranslateMap,
-//! tiles at the root level, NaN or negative values, and grids larger than Nimbus
-//! holds densely.
+//! tiles at the root level, NaN or negative values, and active bounding boxes above
+//! [`MAX_SPARSE_VOXELS`].
 
 use engine::DensityGrid;
-use glam::{DVec3, IVec3, UVec3};
+use glam::{DVec3, IVec3, UVec3, Vec3};
 use std::path::Path;
 
 #[derive(Debug, thiserror::Error)]
@@ -41,20 +44,30 @@ pub enum VdbReadError {
     Empty { path: String, name: String },
     #[error("{path}: grid '{name}': voxel ({i}, {j}, {k}) is {value}; densities must be finite and >= 0")]
     BadValue { path: String, name: String, i: i32, j: i32, k: i32, value: f32 },
-    #[error("{path}: grid '{name}' spans {dims:?} voxels, more than Nimbus holds densely ({max} voxels)")]
+    #[error(
+        "{path}: grid '{name}' spans {dims:?} voxels, more than Nimbus holds ({max} voxels in the active bounding box)"
+    )]
     TooLarge { path: String, name: String, dims: [i64; 3], max: u64 },
 }
 
-/// Most voxels an imported dense grid may have (2 GiB of f32).
-pub const MAX_DENSE_VOXELS: u64 = 1 << 29;
+/// Most voxels of an active bounding box imported densely (64 MiB of f32, 256^3);
+/// bigger boxes import into sparse bricks.
+pub const MAX_DENSE_VOXELS: u64 = 1 << 24;
+/// Most voxels of the active bounding box of a sparse import (4096^3: a brick table of
+/// 512 MiB).
+pub const MAX_SPARSE_VOXELS: u64 = 1 << 36;
 
 /// What the importer found, besides the dense grid.
 #[derive(Debug)]
 pub struct VdbImport {
     pub grid: DensityGrid,
     pub name: String,
-    /// Index of the dense grid's voxel (0, 0, 0) in the file's index space.
+    /// Index of the grid's voxel (0, 0, 0) in the file's index space.
     pub index_min: IVec3,
+    /// Inclusive index bounds of the active voxels (the grid's box equals them for a
+    /// dense import; a sparse import's box is grown to whole 8^3 leaves).
+    pub active_min: IVec3,
+    pub active_max: IVec3,
     /// Active voxels, tiles counted as the voxels they cover.
     pub active_voxels: u64,
     pub active_tiles: u64,
@@ -655,11 +668,13 @@ fn unzip(inflate: &mut flate2::Decompress, chunk: &[u8], bytes: usize, out: &mut
     Ok(())
 }
 
-/// The dense grid being filled, over the active bounding box.
+/// The grid being filled over the active bounding box: a dense array, or sparse
+/// bricks for a box above [`MAX_DENSE_VOXELS`].
 struct Dense {
     lo: IVec3,
     dims: UVec3,
     values: Vec<f32>,
+    sparse: Option<engine::SparseBuilder>,
     sum: f64,
 }
 
@@ -672,6 +687,11 @@ impl Dense {
         }
         self.sum += v as f64 * (edge as u64).pow(3) as f64;
         let r = (c - self.lo).as_uvec3();
+        if let Some(b) = self.sparse.as_mut() {
+            let e = edge as u32 - 1;
+            let res = if e == 0 { b.put(r.x, r.y, r.z, v) } else { b.fill(r, r + e, v) };
+            return res.map_err(|e| Fail::Corrupt(e.to_string()));
+        }
         let (nx, ny) = (self.dims.x as usize, self.dims.y as usize);
         let e = edge as usize;
         for z in 0..e {
@@ -737,18 +757,35 @@ pub fn read_vdb_bytes(data: &[u8], path: &str, name: Option<&str>) -> Result<Vdb
         return Err(VdbReadError::Empty { path: p, name: d.name.clone() });
     }
     let (lo, hi) = (shape.lo, shape.hi);
+    let (active_min, active_max) = (lo, hi);
     let dims64 = (hi - lo).as_i64vec3() + 1;
-    if dims64.x as u64 * dims64.y as u64 * dims64.z as u64 > MAX_DENSE_VOXELS {
+    let box_voxels = dims64.x as u64 * dims64.y as u64 * dims64.z as u64;
+    // Big boxes are held sparsely, with the box aligned to OpenVDB's 8^3 leaves so
+    // that every leaf fills exactly one brick.
+    let sparse = box_voxels > MAX_DENSE_VOXELS;
+    let (lo, hi) = if sparse {
+        (lo.div_euclid(IVec3::splat(8)) * 8, (hi.div_euclid(IVec3::splat(8)) + 1) * 8 - 1)
+    } else {
+        (lo, hi)
+    };
+    let dims64 = (hi - lo).as_i64vec3() + 1;
+    if sparse && dims64.x as u64 * dims64.y as u64 * dims64.z as u64 > MAX_SPARSE_VOXELS {
         return Err(VdbReadError::TooLarge {
             path: p,
             name: d.name.clone(),
             dims: dims64.to_array(),
-            max: MAX_DENSE_VOXELS,
+            max: MAX_SPARSE_VOXELS,
         });
     }
     let dims = UVec3::new(dims64.x as u32, dims64.y as u32, dims64.z as u32);
-    let n = dims.x as usize * dims.y as usize * dims.z as usize;
-    let mut dense = Dense { lo, dims, values: vec![0.0; n], sum: 0.0 };
+    let mut dense = if sparse {
+        let builder = engine::SparseBuilder::new(dims, Vec3::ZERO, Vec3::ONE)
+            .map_err(|e| VdbReadError::Unsupported { path: p.clone(), what: format!("grid '{}': {e}", d.name) })?;
+        Dense { lo, dims, values: Vec::new(), sparse: Some(builder), sum: 0.0 }
+    } else {
+        let n = dims.x as usize * dims.y as usize * dims.z as usize;
+        Dense { lo, dims, values: vec![0.0; n], sparse: None, sum: 0.0 }
+    };
     match TreeWalk::new(&data[..tree.end], tree.topology, tree.format, Some(&mut dense)).run(tree.buffers) {
         Ok(()) => {}
         Err(Fail::BadValue(c, value)) => {
@@ -762,12 +799,18 @@ pub fn read_vdb_bytes(data: &[u8], path: &str, name: Option<&str>) -> Result<Vdb
     // OpenVDB voxel (i, j, k) is a point sample at translation + scale * (i, j, k): our
     // grid's origin (minimum corner) is half a voxel before the first centre.
     let origin = translation + scale * (lo.as_dvec3() - 0.5);
-    let grid = DensityGrid::new(dims, dense.values, origin.as_vec3(), scale.as_vec3())
-        .map_err(|e| VdbReadError::Unsupported { path: p.clone(), what: format!("grid '{}': {e}", d.name) })?;
+    let bad =
+        |e: engine::GridError| VdbReadError::Unsupported { path: p.clone(), what: format!("grid '{}': {e}", d.name) };
+    let grid = match dense.sparse {
+        Some(b) => b.finish().map_err(bad)?.placed(origin.as_vec3(), scale.as_vec3()).map_err(bad)?,
+        None => DensityGrid::new(dims, dense.values, origin.as_vec3(), scale.as_vec3()).map_err(bad)?,
+    };
     Ok(VdbImport {
         grid,
         name: d.name.clone(),
         index_min: lo,
+        active_min,
+        active_max,
         active_voxels: shape.active_voxels,
         active_tiles: shape.active_tiles,
         sum: dense.sum,

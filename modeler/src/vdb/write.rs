@@ -133,6 +133,10 @@ pub fn vdb_bytes(grid: &DensityGrid, name: &str) -> Result<Vec<u8>, VdbWriteErro
                             if lx >= nl(dims.x) || ly >= nl(dims.y) || lz >= nl(dims.z) {
                                 continue;
                             }
+                            // Leaves and the grid's bricks share their 8^3 footprint.
+                            if grid.brick_is_zero(glam::UVec3::new(lx, ly, lz)) {
+                                continue;
+                            }
                             let mut mask = [0u64; 8];
                             let mut values = Vec::new();
                             for x in 0..LEAF_DIM {
@@ -177,7 +181,9 @@ pub fn vdb_bytes(grid: &DensityGrid, name: &str) -> Result<Vec<u8>, VdbWriteErro
     w.u32(10); // library major
     w.u32(0); // library minor
     w.u8(1); // has grid offsets
-    let seed = grid.data().iter().fold(dims.x as u64, |h, v| engine::rng::mix64(h ^ v.to_bits() as u64))
+    let seed = [dims.x, dims.y, dims.z, grid.max_value().to_bits(), active_count as u32]
+        .iter()
+        .fold(grid.memory_bytes() as u64, |h, &v| engine::rng::mix64(h ^ v as u64))
         ^ std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0);
     w.buf.extend_from_slice(uuid_v4(seed).as_bytes());
     w.u32(0); // file metadata count

@@ -382,19 +382,58 @@ pub struct DensityPyramid {
     stds: Vec<f32>,
 }
 
+/// Means of `f`^3 blocks of voxels (the last blocks cut by the bounds count the
+/// voxels outside as zero), x fastest, in parallel over the output.
+fn block_average(grid: &DensityGrid, f: u32) -> Vec<f32> {
+    use rayon::prelude::*;
+    let n = grid.dims();
+    let d = (n + (f - 1)) / f;
+    let inv = 1.0 / (f as f64).powi(3);
+    (0..d.x as usize * d.y as usize * d.z as usize)
+        .into_par_iter()
+        .map(|i| {
+            let (x, y, z) = (
+                (i % d.x as usize) as u32,
+                ((i / d.x as usize) % d.y as usize) as u32,
+                (i / (d.x as usize * d.y as usize)) as u32,
+            );
+            let lo = glam::UVec3::new(x, y, z) * f;
+            let hi = (lo + f).min(n);
+            let mut sum = 0.0f64;
+            for vz in lo.z..hi.z {
+                for vy in lo.y..hi.y {
+                    for vx in lo.x..hi.x {
+                        sum += grid.voxel(vx, vy, vz) as f64;
+                    }
+                }
+            }
+            (sum * inv) as f32
+        })
+        .collect()
+}
+
 impl DensityPyramid {
     /// Builds levels until one's filter is wider than `max_std` (world units).
     pub fn new(grid: &DensityGrid, max_std: f32) -> Self {
-        let d = grid.dims();
-        let h0 = grid.voxel_size();
+        // A big grid (above 256^3 voxels) starts from block averages over 2^n voxels
+        // per axis, so the pyramid's finest level stays within 64 MiB: features wider
+        // than a voxel of it are unchanged, finer ones see the average.
+        let mut f = 1u32;
+        let voxels = |f: u32| {
+            let c = (grid.dims() + (f - 1)) / f;
+            c.x as u64 * c.y as u64 * c.z as u64
+        };
+        while voxels(f) > 1 << 24 {
+            f *= 2;
+        }
+        let (d, h0, values) = if f == 1 {
+            (grid.dims(), grid.voxel_size(), grid.to_dense_vec())
+        } else {
+            ((grid.dims() + (f - 1)) / f, grid.voxel_size() * f as f32, block_average(grid, f))
+        };
         let hmax = h0.max_element();
         let tent = 1.0 / 6.0;
-        let raw = Level::new(
-            grid.origin(),
-            h0,
-            [d.x as usize, d.y as usize, d.z as usize],
-            Texels::F32(grid.data().to_vec()),
-        );
+        let raw = Level::new(grid.origin(), h0, [d.x as usize, d.y as usize, d.z as usize], Texels::F32(values));
         // Filters `level` (stored variance `from` in its voxels^2) to stored variance
         // `to` on the same grid.
         let blur = |level: &Level, from: f64, to: f64| {

@@ -310,6 +310,37 @@ def half_sparse():
     return [g], {"generator": GENERATOR}
 
 
+# Voxels thousands of voxels apart: an active box of 3601 x 1101 x 1301 voxels (5.2e9,
+# 19 GiB as dense f32), which the importer must hold sparsely.
+SPARSE_FAR_ISOLATED = [((-1800, -300, 500), 0.3), ((1800, 800, -800), 0.9), ((7, -5, 3), 0.125)]
+SPARSE_FAR_PROBES = [
+    [-1800, -300, 500], [1800, 800, -800], [7, -5, 3],  # isolated active voxels
+    [-1800, -300, 501], [1799, 800, -800],  # their neighbours (background)
+    [128, 0, 0], [255, 127, 127], [200, 64, 3],  # inside the 128^3 tile
+    [-40, 0, 0], [-33, 7, 7], [-20, 3, 5],  # the 8^3 tiles and a partial leaf
+    [0, 0, 0], [10, 20, 30],  # inside the noisy blob
+]
+
+
+def sparse_far():
+    g = vdb.FloatGrid()
+    g.name = "density"
+    g.gridClass = vdb.GridClass.FOG_VOLUME
+    lo, hi = (-8, -8, -8), (40, 40, 40)
+    i, j, k = lattice(lo, hi)
+    d = np.sqrt(((i - 16) / 24.0) ** 2 + ((j - 16) / 24.0) ** 2 + ((k - 16) / 24.0) ** 2)
+    n = fbm(i / 6.0, j / 6.0, k / 6.0, seed=91)
+    v = clip01(1.5 * ((1.0 - d) + 0.4 * (n - 0.5)))
+    g.copyFromArray(np.where(v >= 0.01, v, 0.0).astype(np.float32), ijk=lo, tolerance=0)
+    g.fill((128, 0, 0), (255, 127, 127), 0.5, active=True)
+    g.fill((-40, 0, 0), (-17, 7, 7), 0.7, active=True)
+    acc = g.getAccessor()
+    for ijk, value in SPARSE_FAR_ISOLATED:
+        acc.setValueOn(ijk, value)
+    g.transform = vdb.createLinearTransform(0.001)
+    return [g], {"generator": GENERATOR}
+
+
 FIXTURES = [
     ("sphere_dense", sphere_dense,
      "Dense smooth sphere (1-(r/R)^2)^2, R = 30 voxels, centred on voxel (0,0,0); "
@@ -339,12 +370,16 @@ FIXTURES = [
      "tile, a box of 8^3 active tiles and partial leaves, a noisy blob, three isolated voxels far "
      "apart, an inactive 8^3 tile and inactive voxels with non-background values (node "
      "compression codes 2, 4 and 5)."),
+    ("sparse_far", sparse_far,
+     "Float32, blosc, voxel 0.001: a 128^3 active tile, 8^3 active tiles and a partial leaf, a "
+     "noisy blob, and isolated voxels thousands of voxels apart: an active box of "
+     "3601 x 1101 x 1301 voxels (19 GiB as dense f32), imported sparsely."),
 ]
 
 # Files transcoded from blosc to zip, files saved as half floats, and extra probes.
 ZIPPED = ("transformed_zip", "half_zip")
 HALF = ("half_float", "half_zip", "half_sparse")
-EXTRA_PROBES = {"half_sparse": HALF_SPARSE_PROBES}
+EXTRA_PROBES = {"half_sparse": HALF_SPARSE_PROBES, "sparse_far": SPARSE_FAR_PROBES}
 
 
 # ------------------------------------------------------------------ reading the file header
@@ -793,9 +828,13 @@ def sidecar(path, name, description):
 def main():
     ap = argparse.ArgumentParser(description="Write the VDB test fixtures and their JSON truth.")
     ap.add_argument("--out", default=HERE, help="output directory (default: this script's directory)")
-    out_dir = ap.parse_args().out
+    ap.add_argument("--only", nargs="*", help="write only these fixtures (default: all)")
+    args = ap.parse_args()
+    out_dir = args.out
     os.makedirs(out_dir, exist_ok=True)
     for name, make, description in FIXTURES:
+        if args.only and name not in args.only:
+            continue
         grids, file_meta = make()
         path = os.path.join(out_dir, name + ".vdb")
         if name in ZIPPED:
