@@ -89,7 +89,7 @@ def is_mono(mi):
     return "mono" in mi.variant()
 
 
-def build_scene(mi, d, scene, bmin, bmax, spp, samples_per_pass):
+def build_scene(mi, d, scene, bmin, bmax, spp, samples_per_pass, rr_depth=5):
     """Build the Mitsuba scene dict and load it.
 
     Returns the loaded scene. In mono variants the sun is rendered with unit
@@ -157,7 +157,9 @@ def build_scene(mi, d, scene, bmin, bmax, spp, samples_per_pass):
         # A camera inside the box must know which medium it starts in.
         sensor["medium"] = {"type": "ref", "id": "cloud"}
 
-    integrator = {"type": "volpath", "max_depth": -1}
+    # rr_depth: Mitsuba's Russian roulette starts at this depth (its default 5);
+    # a huge value turns it off, as Nimbus renders (no roulette on path depth).
+    integrator = {"type": "volpath", "max_depth": -1, "rr_depth": int(rr_depth)}
     if samples_per_pass:
         integrator["samples_per_pass"] = int(samples_per_pass)
 
@@ -306,7 +308,14 @@ def main(argv=None):
                     help="also write DIR/compare.png (Mitsuba | Nimbus | |diff|)")
     ap.add_argument("--no-compare", action="store_true",
                     help="only render (no nimbus_full.npy needed)")
+    ap.add_argument("--rr-depth", default="5",
+                    help="volpath rr_depth (Mitsuba's default 5), or 'off' for no roulette")
+    ap.add_argument("--repeats", type=int, default=8,
+                    help="render this many independent images of spp / repeats each: "
+                         "their spread gives the variance for the efficiency "
+                         "1 / (relative variance x seconds)")
     args = ap.parse_args(argv)
+    rr_depth = (1 << 30) if str(args.rr_depth).lower() == "off" else int(args.rr_depth)
 
     d = args.dir
     scene, grid, bmin, bmax = load_scene_dir(d)
@@ -333,15 +342,36 @@ def main(argv=None):
               "voxel centres: to_world / cell-centring mismatch!", file=sys.stderr)
 
     t0 = time.perf_counter()
-    scene_obj = build_scene(mi, d, scene, bmin, bmax, spp, spp_pass)
+    scene_obj = build_scene(mi, d, scene, bmin, bmax, spp, spp_pass, rr_depth)
     load_s = time.perf_counter() - t0
 
     # Warm-up: compiles (or fetches from Dr.Jit's kernel cache) the kernels;
     # the sample count is not baked into them, so the timed render reuses them.
     _, warm_s = render(mi, dr, scene_obj, warmup_spp, args.seed + 1000003, irr)
-    stats = {}
-    img, seconds = render(mi, dr, scene_obj, spp, args.seed, irr, stats)
-    cpu_util = stats["cpu_seconds"] / seconds / args.threads
+    # Independent images (seeds seed .. seed + R - 1) of spp / R each: the mean is
+    # the image, the spread of the R images the variance of its pixels.
+    repeats = max(1, min(args.repeats, spp))
+    per = spp // repeats
+    spp = per * repeats
+    images, seconds, cpu = [], 0.0, 0.0
+    for r in range(repeats):
+        stats = {}
+        im, secs = render(mi, dr, scene_obj, per, args.seed + r, irr, stats)
+        images.append(im.astype(np.float64))
+        seconds += secs
+        cpu += stats["cpu_seconds"]
+    stack = np.stack(images)
+    img = stack.mean(axis=0).astype(np.float32)
+    rel_noise = None
+    if repeats > 1:
+        var_mean = stack.var(axis=0, ddof=1) / repeats
+        lum = stack.mean(axis=0).mean(axis=2)
+        lit = lum > 0
+        if lit.any():
+            # As Nimbus's Film::relative_noise: sqrt(sum of the pixels' variances of
+            # the mean / sum of their squared means), channel-averaged, lit pixels.
+            rel_noise = float(np.sqrt(var_mean.mean(axis=2)[lit].sum() / (lum[lit] ** 2).sum()))
+    cpu_util = cpu / seconds / args.threads
     print(f"scene load {load_s:.2f} s, warm-up ({warmup_spp} spp) {warm_s:.2f} s, "
           f"render ({spp} spp) {seconds:.2f} s, CPU utilisation "
           f"{100 * cpu_util:.0f}% of {args.threads} threads", file=sys.stderr)
@@ -374,7 +404,16 @@ def main(argv=None):
         "mitsuba_cpu_utilisation": cpu_util,
         "nimbus_samples_per_second": nimbus_sps,
         "speed_ratio": (nimbus_sps / sps) if nimbus_sps else None,
+        "mitsuba_rr_depth": rr_depth,
+        "mitsuba_repeats": repeats,
+        "mitsuba_relative_noise": rel_noise,
     }
+    m_eff = 1.0 / (rel_noise ** 2 * seconds) if rel_noise else None
+    n_eff = nim.get("efficiency")
+    result["mitsuba_efficiency"] = m_eff
+    result["nimbus_efficiency"] = n_eff
+    result["nimbus_relative_noise"] = nim.get("relative_noise")
+    result["efficiency_ratio"] = (n_eff / m_eff) if (n_eff and m_eff) else None
 
     result.update({k: None for k in ("mean_rel_diff", "rel_bias_16x", "rel_bias_4x",
                                      "corr", "corr_flip_x", "corr_flip_y")})

@@ -283,7 +283,9 @@ fn write_mitsuba_bundle(
         "camera": {"origin": cam.position().to_array(), "target": cam.target().to_array(), "up": cam.up().to_array(), "fov_y_deg": cam.fov_y_deg()},
         "sun": {"direction": sun.direction().to_array(), "irradiance": sun.radiance().to_array()},
         "medium": {"rho": scene.medium.rho(), "albedo": scene.medium.albedo(), "g": g},
-        "nimbus": {"spp": film.spp(), "seconds": outcome.render_secs, "samples_per_second": outcome.samples_per_sec(), "threads": threads, "image": "nimbus_full.npy"},
+        "nimbus": {"spp": film.spp(), "seconds": outcome.render_secs, "samples_per_second": outcome.samples_per_sec(), "threads": threads, "image": "nimbus_full.npy",
+            "relative_noise": film.relative_noise(Buffer::Full),
+            "efficiency": 1.0 / (film.relative_noise(Buffer::Full).powi(2) * outcome.render_secs).max(1e-30)},
     });
     output::write_bytes_atomically(&dir.join("scene.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
     eprintln!("wrote cloud.vol, scene.json and nimbus_full.npy to {}", dir.display());
