@@ -50,7 +50,8 @@ impl Builtin {
     }
 
     /// The cloud voxelized at `resolution`^3 over [-0.5, 0.5]^3: dense up to
-    /// [`modeler::DENSE_BUILD_MAX`], sparse bricks above.
+    /// [`modeler::DENSE_BUILD_MAX`] (0: always sparse, the same values), sparse bricks
+    /// above.
     pub fn grid(&self, resolution: u32) -> DensityGrid {
         let (dims, bounds) = (UVec3::splat(resolution), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)));
         if resolution <= modeler::DENSE_BUILD_MAX {
@@ -123,7 +124,12 @@ mod tests {
     fn brick_test_is_conservative() {
         for b in [Builtin::Cumulus, Builtin::Sphere] {
             let res = 72u32;
-            let dense = b.grid(res);
+            let dense =
+                DensityGrid::from_fn(UVec3::splat(res), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)), |p| {
+                    b.density(p)
+                })
+                .unwrap();
+            assert!(b.grid(res).to_dense_vec() == dense.to_dense_vec(), "{b:?}: the built grid differs");
             let sparse = DensityGrid::from_fn_sparse(
                 UVec3::splat(res),
                 Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)),

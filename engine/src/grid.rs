@@ -521,9 +521,15 @@ impl DensityGrid {
                 let m = BRICK - 1;
                 let (xu, yu, zu) = (x as u32, y as u32, z as u32);
                 let local = (xu & m) + BRICK * ((yu & m) + BRICK * (zu & m));
+                let slot = b.slot_of(xu, yu, zu);
+                if b.constant[slot] {
+                    // Eight equal corners: the interpolation returns that value
+                    // exactly (c + f (c - c) = c), so it is skipped.
+                    return b.slot_max[slot];
+                }
                 Some((
                     b.pool.as_slice(),
-                    b.slot_of(xu, yu, zu) * BRICK_VOXELS + local as usize,
+                    slot * BRICK_VOXELS + local as usize,
                     BRICK as usize,
                     (BRICK * BRICK) as usize,
                 ))
