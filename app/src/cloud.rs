@@ -49,17 +49,12 @@ impl Builtin {
         }
     }
 
-    /// The cloud voxelized at `resolution`^3 over [-0.5, 0.5]^3: dense up to
-    /// [`modeler::DENSE_BUILD_MAX`] (0: always sparse, the same values), sparse bricks
-    /// above.
+    /// The cloud voxelized at `resolution`^3 over [-0.5, 0.5]^3, in sparse bricks (as
+    /// the modeler builds: the same values as dense, faster to render).
     pub fn grid(&self, resolution: u32) -> DensityGrid {
         let (dims, bounds) = (UVec3::splat(resolution), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)));
-        if resolution <= modeler::DENSE_BUILD_MAX {
-            DensityGrid::from_fn(dims, bounds, |p| self.density(p))
-        } else {
-            DensityGrid::from_fn_sparse(dims, bounds, |b| self.may_be_nonzero(b), |p| self.density(p))
-        }
-        .expect("built-in clouds are finite and non-negative")
+        DensityGrid::from_fn_sparse(dims, bounds, |b| self.may_be_nonzero(b), |p| self.density(p))
+            .expect("built-in clouds are finite and non-negative")
     }
 }
 

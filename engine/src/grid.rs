@@ -99,10 +99,16 @@ struct Bricks {
 }
 
 impl Bricks {
+    /// The slot of brick `b` (brick coordinates).
+    #[inline(always)]
+    fn brick_slot(&self, b: UVec3) -> usize {
+        self.table[(b.x + self.bdims.x * (b.y + self.bdims.y * b.z)) as usize] as usize
+    }
+
+    /// The slot of the brick holding voxel (x, y, z).
     #[inline(always)]
     fn slot_of(&self, x: u32, y: u32, z: u32) -> usize {
-        let b = self.bdims;
-        self.table[((x >> BRICK_LOG2) + b.x * ((y >> BRICK_LOG2) + b.y * (z >> BRICK_LOG2))) as usize] as usize
+        self.brick_slot(UVec3::new(x >> BRICK_LOG2, y >> BRICK_LOG2, z >> BRICK_LOG2))
     }
 
     #[inline(always)]
@@ -133,28 +139,16 @@ impl DensityGrid {
     /// Builds a grid from values (x fastest), rejecting NaN, infinity and negative
     /// values with the first bad voxel named.
     pub fn new(dims: UVec3, data: Vec<f32>, origin: Vec3, voxel_size: Vec3) -> Result<Self, GridError> {
-        if dims.min_element() == 0 {
-            return Err(GridError::EmptyDims(dims.x, dims.y, dims.z));
-        }
+        Self::check_placement(dims, origin, voxel_size)?;
         let expected = dims.x as usize * dims.y as usize * dims.z as usize;
         if data.len() != expected {
             return Err(GridError::LengthMismatch { dims: dims.to_array(), expected, got: data.len() });
-        }
-        if !voxel_size.is_finite() || voxel_size.min_element() <= 0.0 {
-            return Err(GridError::BadVoxelSize(voxel_size.to_array()));
-        }
-        if !origin.is_finite() {
-            return Err(GridError::BadOrigin(origin.to_array()));
         }
         let mut max_value = 0.0f32;
         for (i, &v) in data.iter().enumerate() {
             if !(v >= 0.0 && v.is_finite()) {
                 let (x, y, z) = unflatten(i, dims);
-                return Err(if v.is_finite() {
-                    GridError::Negative { x, y, z, value: v }
-                } else {
-                    GridError::NonFinite { x, y, z, value: v }
-                });
+                check_value(x, y, z, v)?;
             }
             max_value = max_value.max(v);
         }
@@ -181,6 +175,18 @@ impl DensityGrid {
         Ok(())
     }
 
+    /// Bounds that are finite with max > min, for `dims` of at least one voxel per
+    /// axis; returns the voxel size that tiles them.
+    fn check_bounds(dims: UVec3, bounds: Bounds3) -> Result<Vec3, GridError> {
+        if !(bounds.min.is_finite() && bounds.max.is_finite()) || bounds.extent().min_element() <= 0.0 {
+            return Err(GridError::BadBounds { min: bounds.min.to_array(), max: bounds.max.to_array() });
+        }
+        if dims.min_element() == 0 {
+            return Err(GridError::EmptyDims(dims.x, dims.y, dims.z));
+        }
+        Ok(bounds.extent() / dims.as_vec3())
+    }
+
     /// Samples `f(world position of the voxel centre)` brick by brick into a sparse
     /// grid over `bounds`, never holding the dense box. `may_be_nonzero(brick box)`
     /// is a conservative test: a brick it rejects is stored as zeros without calling
@@ -193,13 +199,7 @@ impl DensityGrid {
         f: impl Fn(Vec3) -> f32 + Sync,
     ) -> Result<Self, GridError> {
         use rayon::prelude::*;
-        if !(bounds.min.is_finite() && bounds.max.is_finite()) || bounds.extent().min_element() <= 0.0 {
-            return Err(GridError::BadBounds { min: bounds.min.to_array(), max: bounds.max.to_array() });
-        }
-        if dims.min_element() == 0 {
-            return Err(GridError::EmptyDims(dims.x, dims.y, dims.z));
-        }
-        let vs = bounds.extent() / dims.as_vec3();
+        let vs = Self::check_bounds(dims, bounds)?;
         let mut builder = SparseBuilder::new(dims, bounds.min, vs)?;
         let bd = builder.bricks.bdims;
         let brick_box = |b: UVec3| {
@@ -288,14 +288,6 @@ impl DensityGrid {
         matches!(self.storage, Storage::Sparse(_))
     }
 
-    /// The dense values (x fastest), where the grid is dense.
-    pub fn dense_data(&self) -> Option<&[f32]> {
-        match &self.storage {
-            Storage::Dense(d) => Some(d),
-            Storage::Sparse(_) => None,
-        }
-    }
-
     /// Every voxel value, x fastest (allocates the dense box for a sparse grid).
     pub fn to_dense_vec(&self) -> Vec<f32> {
         match &self.storage {
@@ -324,7 +316,7 @@ impl DensityGrid {
     /// sparse grid, by reading the voxels for a dense one).
     pub fn brick_is_zero(&self, b: UVec3) -> bool {
         match &self.storage {
-            Storage::Sparse(br) => br.table[(b.x + br.bdims.x * (b.y + br.bdims.y * b.z)) as usize] == 0,
+            Storage::Sparse(br) => br.brick_slot(b) == 0,
             Storage::Dense(_) => self.brick_max(b) == 0.0,
         }
     }
@@ -332,22 +324,8 @@ impl DensityGrid {
     /// The largest voxel value in brick `b`.
     pub fn brick_max(&self, b: UVec3) -> f32 {
         match &self.storage {
-            Storage::Sparse(br) => {
-                br.slot_max[br.table[(b.x + br.bdims.x * (b.y + br.bdims.y * b.z)) as usize] as usize]
-            }
-            Storage::Dense(_) => {
-                let lo = b * BRICK;
-                let hi = (lo + BRICK).min(self.dims);
-                let mut m = 0.0f32;
-                for z in lo.z..hi.z {
-                    for y in lo.y..hi.y {
-                        for x in lo.x..hi.x {
-                            m = m.max(self.voxel(x, y, z));
-                        }
-                    }
-                }
-                m
-            }
+            Storage::Sparse(br) => br.slot_max[br.brick_slot(b)],
+            Storage::Dense(_) => self.max_in_box(b * BRICK, b * BRICK + (BRICK - 1)),
         }
     }
 
@@ -376,7 +354,7 @@ impl DensityGrid {
             for by in b0.y..=b1.y {
                 for bx in b0.x..=b1.x {
                     let b = UVec3::new(bx, by, bz);
-                    let slot = br.table[(bx + br.bdims.x * (by + br.bdims.y * bz)) as usize] as usize;
+                    let slot = br.brick_slot(b);
                     let smax = br.slot_max[slot];
                     if smax <= m {
                         continue;
@@ -415,13 +393,7 @@ impl DensityGrid {
 
     /// Builds a grid whose voxels exactly tile `bounds`.
     pub fn from_bounds(dims: UVec3, data: Vec<f32>, bounds: Bounds3) -> Result<Self, GridError> {
-        if !(bounds.min.is_finite() && bounds.max.is_finite()) || bounds.extent().min_element() <= 0.0 {
-            return Err(GridError::BadBounds { min: bounds.min.to_array(), max: bounds.max.to_array() });
-        }
-        if dims.min_element() == 0 {
-            return Err(GridError::EmptyDims(dims.x, dims.y, dims.z));
-        }
-        let voxel_size = bounds.extent() / dims.as_vec3();
+        let voxel_size = Self::check_bounds(dims, bounds)?;
         Self::new(dims, data, bounds.min, voxel_size)
     }
 
@@ -652,16 +624,6 @@ impl SparseBuilder {
         self.dims
     }
 
-    fn check(&self, x: u32, y: u32, z: u32, v: f32) -> Result<(), GridError> {
-        if v >= 0.0 && v.is_finite() {
-            Ok(())
-        } else if v.is_finite() {
-            Err(GridError::Negative { x, y, z, value: v })
-        } else {
-            Err(GridError::NonFinite { x, y, z, value: v })
-        }
-    }
-
     fn constant_slot(&mut self, v: f32) -> u32 {
         // -0.0 and 0.0 are one value for a density.
         let v = if v == 0.0 { 0.0 } else { v };
@@ -720,7 +682,7 @@ impl SparseBuilder {
                 for x in lo.x..hi.x {
                     let i = ((x - lo.x) + BRICK * ((y - lo.y) + BRICK * (z - lo.z))) as usize;
                     let v = values[i];
-                    self.check(x, y, z, v)?;
+                    check_value(x, y, z, v)?;
                     clean[i] = v;
                     m = m.max(v);
                     match first {
@@ -749,7 +711,7 @@ impl SparseBuilder {
 
     /// Sets one voxel.
     pub fn put(&mut self, x: u32, y: u32, z: u32, v: f32) -> Result<(), GridError> {
-        self.check(x, y, z, v)?;
+        check_value(x, y, z, v)?;
         let bi = self.brick_index(UVec3::new(x, y, z) / BRICK);
         let mut slot = self.bricks.table[bi] as usize;
         if self.bricks.constant[slot] {
@@ -790,7 +752,7 @@ impl SparseBuilder {
         if lo.cmpgt(hi).any() {
             return Ok(());
         }
-        self.check(lo.x, lo.y, lo.z, v)?;
+        check_value(lo.x, lo.y, lo.z, v)?;
         let (b0, b1) = (lo / BRICK, hi / BRICK);
         for bz in b0.z..=b1.z {
             for by in b0.y..=b1.y {
@@ -828,6 +790,17 @@ impl SparseBuilder {
             inv_voxel_size: self.voxel_size.recip(),
             max_value,
         })
+    }
+}
+
+/// A density must be finite and non-negative; the error names the voxel.
+fn check_value(x: u32, y: u32, z: u32, v: f32) -> Result<(), GridError> {
+    if v >= 0.0 && v.is_finite() {
+        Ok(())
+    } else if v.is_finite() {
+        Err(GridError::Negative { x, y, z, value: v })
+    } else {
+        Err(GridError::NonFinite { x, y, z, value: v })
     }
 }
 

@@ -15,6 +15,11 @@ pub struct Sphere {
 /// spheres that can influence it.
 const BINS: usize = 32;
 
+/// The bin index along one axis of a box coordinate (clamped to the bins).
+fn bin_coord(x: f32) -> usize {
+    (((x + 0.5) * BINS as f32).floor() as i64).clamp(0, BINS as i64 - 1) as usize
+}
+
 /// Smooth union of sphere distances, independent of which far spheres are listed:
 /// start from the nearest sphere (distance m), blend in, in list order, the others
 /// within `k` of it, and never go below m - k / 4 (a chain of polynomial smooth
@@ -253,12 +258,11 @@ impl CloudModel {
                 })
                 .collect()
         };
-        let to_bin = |x: f32| (((x + 0.5) * BINS as f32).floor() as i64).clamp(0, BINS as i64 - 1) as usize;
         for (i, s) in spheres.iter().enumerate() {
             let (a, b) = (s.center - (s.radius + reach), s.center + (s.radius + reach));
-            for z in to_bin(a.z)..=to_bin(b.z) {
-                for y in to_bin(a.y)..=to_bin(b.y) {
-                    for x in to_bin(a.x)..=to_bin(b.x) {
+            for z in bin_coord(a.z)..=bin_coord(b.z) {
+                for y in bin_coord(a.y)..=bin_coord(b.y) {
+                    for x in bin_coord(a.x)..=bin_coord(b.x) {
                         // Only if some point of the bin is within reach of the surface.
                         let lo = Vec3::new(x as f32, y as f32, z as f32) * bin_size - 0.5;
                         let nearest = s.center.clamp(lo, lo + bin_size);
@@ -368,14 +372,13 @@ impl CloudModel {
     /// within `reach` of p's surface distance, and the bin holding p lists every such
     /// sphere, so the bins overlapping `b` hold all the candidates.
     pub fn may_be_nonzero(&self, b: Bounds3) -> bool {
-        let to_bin = |x: f32| (((x + 0.5) * BINS as f32).floor() as i64).clamp(0, BINS as i64 - 1) as usize;
         let (lo, hi) = (b.min, b.max);
         if hi.cmplt(Vec3::splat(-0.5 - self.reach)).any() || lo.cmpgt(Vec3::splat(0.5 + self.reach)).any() {
             return false;
         }
-        for z in to_bin(lo.z)..=to_bin(hi.z) {
-            for y in to_bin(lo.y)..=to_bin(hi.y) {
-                for x in to_bin(lo.x)..=to_bin(hi.x) {
+        for z in bin_coord(lo.z)..=bin_coord(hi.z) {
+            for y in bin_coord(lo.y)..=bin_coord(hi.y) {
+                for x in bin_coord(lo.x)..=bin_coord(hi.x) {
                     for &i in &self.bins[x + BINS * (y + BINS * z)] {
                         let s = self.spheres[i as usize];
                         let nearest = s.center.clamp(lo, hi);
@@ -401,26 +404,19 @@ impl CloudModel {
     }
 }
 
-/// Largest resolution a grid is built densely at; above it the grid is built brick by
-/// brick into sparse storage, skipping the bricks no sphere reaches. 0: every cloud is
-/// built sparse, since sparse storage renders the same image bit for bit and is
-/// faster (the constant core's bricks share one slot that stays in cache, and a
-/// lookup inside a constant brick skips the interpolation).
-pub const DENSE_BUILD_MAX: u32 = 0;
-
-/// The cloud voxelized at `resolution`^3 over the box [-0.5, 0.5]^3 (2 ..= 2048).
+/// The cloud voxelized at `resolution`^3 over the box [-0.5, 0.5]^3 (2 ..= 2048), in
+/// sparse bricks: the bricks no sphere reaches are skipped, and sparse storage renders
+/// the same image as dense bit for bit, faster (the constant core's bricks share one
+/// slot that stays in cache, and a lookup inside a constant brick skips the
+/// interpolation).
 pub fn build_grid(params: &CloudParams, resolution: u32) -> Result<DensityGrid, ParamError> {
     if !(2..=2048).contains(&resolution) {
         return Err(ParamError { name: "resolution", value: resolution.to_string(), range: "2 ..= 2048" });
     }
     let model = CloudModel::with_resolution(params, Some(resolution))?;
     let (dims, bounds) = (UVec3::splat(resolution), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)));
-    let grid = if resolution <= DENSE_BUILD_MAX {
-        DensityGrid::from_fn(dims, bounds, |p| model.density(p))
-    } else {
-        DensityGrid::from_fn_sparse(dims, bounds, |b| model.may_be_nonzero(b), |p| model.density(p))
-    };
-    Ok(grid.expect("modeler densities are finite and in [0, 1]"))
+    Ok(DensityGrid::from_fn_sparse(dims, bounds, |b| model.may_be_nonzero(b), |p| model.density(p))
+        .expect("modeler densities are finite and in [0, 1]"))
 }
 
 #[cfg(test)]

@@ -14,6 +14,6 @@ pub mod vdb;
 
 mod build;
 
-pub use build::{CloudModel, DENSE_BUILD_MAX, build_grid};
+pub use build::{CloudModel, build_grid};
 pub use params::{CloudParams, Group, PARAMS, ParamError, ParamSpec};
 pub use presets::{PRESET_NAMES, preset};

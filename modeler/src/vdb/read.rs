@@ -57,7 +57,7 @@ pub const MAX_DENSE_VOXELS: u64 = 1 << 24;
 /// 512 MiB).
 pub const MAX_SPARSE_VOXELS: u64 = 1 << 36;
 
-/// What the importer found, besides the dense grid.
+/// What the importer found, besides the grid.
 #[derive(Debug)]
 pub struct VdbImport {
     pub grid: DensityGrid,
@@ -339,12 +339,12 @@ enum Block {
 /// One walk of a `Tree_float_5_4_3` as OpenVDB writes it (file versions 222+): the
 /// topology (root, internal nodes with their child mask, value mask and value array,
 /// the leaves' value masks), then every leaf's buffer (value mask and value array) in
-/// topology order. With `dense` it decodes the values into it; without it, it only
+/// topology order. With a `target` it decodes the values into it; without it, it only
 /// checks the structure and bounds the active voxels.
 struct TreeWalk<'a, 'd> {
     c: Cursor<'a>,
     format: ValueFormat,
-    dense: Option<&'d mut Dense>,
+    target: Option<&'d mut Target>,
     shape: Shape,
     /// The leaves, and when decoding the tiles, depth first, each internal node's
     /// tiles after its children. This is the order in which the sum is accumulated;
@@ -412,11 +412,11 @@ fn leaf_bounds(mask: &[u8; 64]) -> Option<(IVec3, IVec3)> {
 }
 
 impl<'a, 'd> TreeWalk<'a, 'd> {
-    fn new(data: &'a [u8], pos: usize, format: ValueFormat, dense: Option<&'d mut Dense>) -> Self {
+    fn new(data: &'a [u8], pos: usize, format: ValueFormat, target: Option<&'d mut Target>) -> Self {
         TreeWalk {
             c: Cursor { data, pos },
             format,
-            dense,
+            target,
             shape: Shape::default(),
             blocks: Vec::new(),
             inflate: flate2::Decompress::new(true),
@@ -489,7 +489,7 @@ impl<'a, 'd> TreeWalk<'a, 'd> {
             let o = origin + (local(i, log2dim) << shift);
             self.shape.add(o, o + (edge - 1), (edge as u64).pow(3));
             self.shape.active_tiles += 1;
-            if self.dense.is_some() {
+            if self.target.is_some() {
                 tiles.push(Block::Tile { origin: o, edge, value: stored.get(rank, i) });
             }
         }
@@ -520,15 +520,15 @@ impl<'a, 'd> TreeWalk<'a, 'd> {
                         );
                     }
                     let stored = self.values(512, mask)?;
-                    if let Some(dense) = self.dense.as_deref_mut() {
+                    if let Some(target) = self.target.as_deref_mut() {
                         for (rank, i) in ones(mask).enumerate() {
-                            dense.put(origin + local(i, 3), 1, stored.get(rank, i))?;
+                            target.put(origin + local(i, 3), 1, stored.get(rank, i))?;
                         }
                     }
                 }
                 Block::Tile { origin, edge, value } => {
-                    if let Some(dense) = self.dense.as_deref_mut() {
-                        dense.put(origin, edge, value)?;
+                    if let Some(target) = self.target.as_deref_mut() {
+                        target.put(origin, edge, value)?;
                     }
                 }
             }
@@ -537,7 +537,7 @@ impl<'a, 'd> TreeWalk<'a, 'd> {
     }
 
     /// One value array of `n` values as io::writeCompressedValues writes it; `mask` is
-    /// the node's value mask. Decodes it when the walk has a dense grid.
+    /// the node's value mask. Decodes it when the walk has a target grid.
     fn values(&mut self, n: usize, mask: &[u8]) -> Result<Stored, String> {
         let meta = self.c.u8()?;
         if meta > 6 {
@@ -561,7 +561,7 @@ impl<'a, 'd> TreeWalk<'a, 'd> {
         let count = if compact { popcount(mask) } else { n };
         let width = if self.format.half { 2 } else { 4 };
         let bytes = count * width;
-        let decode = self.dense.is_some();
+        let decode = self.target.is_some();
         let mut raw: &[u8] = &[];
         if self.format.half && count == 0 {
             // io::HalfWriter writes nothing for an empty array, not even a chunk size.
@@ -670,7 +670,7 @@ fn unzip(inflate: &mut flate2::Decompress, chunk: &[u8], bytes: usize, out: &mut
 
 /// The grid being filled over the active bounding box: a dense array, or sparse
 /// bricks for a box above [`MAX_DENSE_VOXELS`].
-struct Dense {
+struct Target {
     lo: IVec3,
     dims: UVec3,
     values: Vec<f32>,
@@ -678,7 +678,7 @@ struct Dense {
     sum: f64,
 }
 
-impl Dense {
+impl Target {
     /// Writes an active `edge`^3 block of one value at `c` (inside the bounding box:
     /// the blocks are the ones the preflight bounded).
     fn put(&mut self, c: IVec3, edge: i32, v: f32) -> Result<(), Fail> {
@@ -778,15 +778,15 @@ pub fn read_vdb_bytes(data: &[u8], path: &str, name: Option<&str>) -> Result<Vdb
         });
     }
     let dims = UVec3::new(dims64.x as u32, dims64.y as u32, dims64.z as u32);
-    let mut dense = if sparse {
+    let mut target = if sparse {
         let builder = engine::SparseBuilder::new(dims, Vec3::ZERO, Vec3::ONE)
             .map_err(|e| VdbReadError::Unsupported { path: p.clone(), what: format!("grid '{}': {e}", d.name) })?;
-        Dense { lo, dims, values: Vec::new(), sparse: Some(builder), sum: 0.0 }
+        Target { lo, dims, values: Vec::new(), sparse: Some(builder), sum: 0.0 }
     } else {
         let n = dims.x as usize * dims.y as usize * dims.z as usize;
-        Dense { lo, dims, values: vec![0.0; n], sparse: None, sum: 0.0 }
+        Target { lo, dims, values: vec![0.0; n], sparse: None, sum: 0.0 }
     };
-    match TreeWalk::new(&data[..tree.end], tree.topology, tree.format, Some(&mut dense)).run(tree.buffers) {
+    match TreeWalk::new(&data[..tree.end], tree.topology, tree.format, Some(&mut target)).run(tree.buffers) {
         Ok(()) => {}
         Err(Fail::BadValue(c, value)) => {
             return Err(VdbReadError::BadValue { path: p, name: d.name.clone(), i: c.x, j: c.y, k: c.z, value });
@@ -801,9 +801,9 @@ pub fn read_vdb_bytes(data: &[u8], path: &str, name: Option<&str>) -> Result<Vdb
     let origin = translation + scale * (lo.as_dvec3() - 0.5);
     let bad =
         |e: engine::GridError| VdbReadError::Unsupported { path: p.clone(), what: format!("grid '{}': {e}", d.name) };
-    let grid = match dense.sparse {
+    let grid = match target.sparse {
         Some(b) => b.finish().map_err(bad)?.placed(origin.as_vec3(), scale.as_vec3()).map_err(bad)?,
-        None => DensityGrid::new(dims, dense.values, origin.as_vec3(), scale.as_vec3()).map_err(bad)?,
+        None => DensityGrid::new(dims, target.values, origin.as_vec3(), scale.as_vec3()).map_err(bad)?,
     };
     Ok(VdbImport {
         grid,
@@ -813,7 +813,7 @@ pub fn read_vdb_bytes(data: &[u8], path: &str, name: Option<&str>) -> Result<Vdb
         active_max,
         active_voxels: shape.active_voxels,
         active_tiles: shape.active_tiles,
-        sum: dense.sum,
+        sum: target.sum,
         voxel_size: scale,
         translation,
         grids,

@@ -32,10 +32,7 @@ pub struct BenchLatencyArgs {
 
 /// Resident set size of this process in MiB (Linux), or None where /proc is missing.
 pub fn resident_mib() -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
-    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib / 1024.0)
+    super::render::resident_bytes().map(|b| b as f64 / 1048576.0)
 }
 
 /// Least-squares slope of y over x.
