@@ -3,6 +3,7 @@
 //! Sums are f64: 10^5 samples per pixel lose nothing.
 
 use crate::integrator::base::PathSample;
+use rayon::prelude::*;
 
 /// The buffers a render accumulates.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -109,6 +110,36 @@ impl Film {
         self.spp += 1;
     }
 
+    /// Adds several passes, in order: the same sums bit for bit as [`Film::add_pass`]
+    /// once per pass (every pixel still receives its passes in order), with the four
+    /// buffers accumulated on parallel threads, so the accumulation does not hold one
+    /// core idle between batches of passes.
+    pub fn add_passes(&mut self, passes: &[Vec<PathSample>]) {
+        let n = self.pixel_count();
+        for samples in passes {
+            assert_eq!(samples.len(), n, "a pass covers every pixel once");
+        }
+        let rejected: usize = passes.par_iter().map(|samples| samples.iter().filter(|s| !s.is_finite()).count()).sum();
+        self.layers.par_iter_mut().enumerate().for_each(|(k, layer)| {
+            for samples in passes {
+                for (i, s) in samples.iter().enumerate() {
+                    // A non-finite sample counts as zero, as in `add_pass`.
+                    let s = if s.is_finite() { *s } else { PathSample::default() };
+                    let (d, l, h) = (s.direct.as_dvec3(), s.low.as_dvec3(), s.high.as_dvec3());
+                    let v = match k {
+                        0 => d,
+                        1 => l,
+                        2 => h,
+                        _ => d + l + h,
+                    };
+                    layer.add(i, v.to_array());
+                }
+            }
+        });
+        self.rejected += rejected as u64;
+        self.spp += passes.len() as u32;
+    }
+
     /// Per-pixel mean (the image) of a buffer.
     pub fn mean(&self, buffer: Buffer) -> Vec<[f32; 3]> {
         let inv = if self.spp > 0 { 1.0 / self.spp as f64 } else { 0.0 };
@@ -199,6 +230,42 @@ mod tests {
         assert!((f.variance_of_mean(Buffer::Full)[0][0] - 2.25).abs() < 1e-6);
         assert!(m.iter().flatten().all(|x| x.is_finite()));
         assert!((f.average(Buffer::Full) - 0.75).abs() < 1e-12);
+    }
+
+    /// Passes added as one batch give the sums of passes added one at a time, bit for
+    /// bit, and reject the same non-finite samples.
+    #[test]
+    fn batched_passes_add_up_like_single_ones() {
+        let mut rng = crate::Rng::new(5, 0, 0);
+        let n = 37;
+        let passes: Vec<Vec<PathSample>> = (0..5)
+            .map(|p| {
+                (0..n)
+                    .map(|i| {
+                        let mut v = || Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 1e3;
+                        let mut s = PathSample { direct: v(), low: v(), high: v() };
+                        if (i + p) % 11 == 0 {
+                            s.low.y = f32::NAN;
+                        }
+                        s
+                    })
+                    .collect()
+            })
+            .collect();
+        let (mut one, mut batch) = (Film::new(n as u32, 1), Film::new(n as u32, 1));
+        one.add_pass(&passes[0]);
+        batch.add_pass(&passes[0]);
+        for p in &passes[1..] {
+            one.add_pass(p);
+        }
+        batch.add_passes(&passes[1..]);
+        assert_eq!(batch.spp(), 5);
+        assert_eq!(batch.rejected_samples(), one.rejected_samples());
+        assert!(one.rejected_samples() > 0);
+        for b in Buffer::ALL {
+            assert!(one.sums(b) == batch.sums(b), "{b:?}");
+            assert!(one.layers[b.index()].sum_sq == batch.layers[b.index()].sum_sq, "{b:?}");
+        }
     }
 
     /// A bright, noiseless background pixel counts in the image's noise but not in the

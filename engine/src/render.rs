@@ -126,10 +126,7 @@ impl Renderer {
         let Some(passes) = self.render_passes_samples(first, count.max(1), control, generation) else {
             return PassOutcome::Cancelled;
         };
-        let mut film = self.film.write().unwrap_or_else(|e| e.into_inner());
-        for samples in &passes {
-            film.add_pass(samples);
-        }
+        self.film.write().unwrap_or_else(|e| e.into_inner()).add_passes(&passes);
         PassOutcome::Completed
     }
 
@@ -161,18 +158,29 @@ impl Renderer {
                 self.render_tile(first + p as u32, self.tiles[t], pools[p].as_ref(), control, generation)
             })
             .collect::<Option<Vec<_>>>()?;
-        let mut out = Vec::with_capacity(count as usize);
-        for pass_tiles in tiles.chunks(nt) {
-            let mut samples = vec![PathSample::default(); (w * h) as usize];
-            for (&(x0, y0, x1, _), tile) in self.tiles.iter().zip(pass_tiles) {
-                let tw = (x1 - x0) as usize;
-                for (row, chunk) in tile.chunks(tw).enumerate() {
-                    let start = (y0 as usize + row) * w as usize + x0 as usize;
-                    samples[start..start + tw].copy_from_slice(chunk);
-                }
-            }
-            out.push(samples);
-        }
+        // Each pass in pixel order, assembled by bands of one tile row in parallel (the
+        // tiles are in row-major order, a band's tiles consecutive).
+        let band = (TILE_SIZE * w) as usize;
+        let tiles_per_band = w.div_ceil(TILE_SIZE) as usize;
+        let out = tiles
+            .par_chunks(nt)
+            .map(|pass_tiles| {
+                let mut samples = vec![PathSample::default(); (w * h) as usize];
+                samples.par_chunks_mut(band).zip(pass_tiles.par_chunks(tiles_per_band)).enumerate().for_each(
+                    |(b, (dst, band_tiles))| {
+                        let first = b * tiles_per_band;
+                        for (&(x0, y0, x1, _), tile) in self.tiles[first..].iter().zip(band_tiles) {
+                            let tw = (x1 - x0) as usize;
+                            for (row, chunk) in tile.chunks(tw).enumerate() {
+                                let start = (y0 as usize - b * TILE_SIZE as usize + row) * w as usize + x0 as usize;
+                                dst[start..start + tw].copy_from_slice(chunk);
+                            }
+                        }
+                    },
+                );
+                samples
+            })
+            .collect();
         Some(out)
     }
 

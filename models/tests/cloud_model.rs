@@ -5,7 +5,7 @@
 //! with candle; the model files round-trip and broken ones are refused; and the bound
 //! predictor answers through the engine's trait.
 
-use models::cloud::datagen::{CloudDataset, CloudSpec, HELD_OUT_PRESETS, generate};
+use models::cloud::datagen::{CloudDataset, CloudSpec, HELD_OUT_PRESETS, build_case, generate};
 use models::cloud::features::N_FEATURES;
 use models::cloud::train::{CloudTrainConfig, CloudTrainData, train};
 use models::cloud::{BoundCloudModel, CloudModel};
@@ -101,6 +101,19 @@ fn generator_is_deterministic_resumable_and_shardable() {
     assert!(e.to_string().contains("--presets") && e.to_string().contains("held-out"), "{e}");
     let e = CloudSpec { vertex_weights: [0.5, 0.5, 0.5], ..s.clone() }.validate().unwrap_err();
     assert!(e.to_string().contains("--vertex-weights"), "{e}");
+    let e = CloudSpec { sun: Some([0.0, 0.0, 0.0]), ..s.clone() }.validate().unwrap_err();
+    assert!(e.to_string().contains("--sun"), "{e}");
+
+    // A fixed sun lights every cloud from that direction; the rest of each case (rho,
+    // albedo, g) is drawn as without it.
+    let fixed = CloudSpec { sun: Some([0.0, -2.0, 0.0]), ..s.clone() };
+    for c in 0..3 {
+        let (a, b) = (build_case(&s, c).unwrap(), build_case(&fixed, c).unwrap());
+        assert_eq!(b.scene.sun.unwrap().direction(), glam::Vec3::NEG_Y, "case {c}");
+        assert_ne!(a.scene.sun.unwrap().direction(), glam::Vec3::NEG_Y, "case {c}");
+        assert_eq!(a.scene.medium.rho(), b.scene.medium.rho(), "case {c}");
+        assert_eq!(a.scene.medium.albedo(), b.scene.medium.albedo(), "case {c}");
+    }
 
     // A held-out set draws other clouds and is refused as training data.
     let h = CloudSpec { held_out: true, presets: vec![], ..s.clone() };

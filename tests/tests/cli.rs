@@ -311,3 +311,64 @@ fn turntable_writes_frames_resumes_and_refuses_other_settings() {
     let e = nimbus(&args).unwrap_err().to_string();
     assert!(e.contains("no turntable.json"), "{e}");
 }
+
+/// `nimbus datagen cloud` with a fixed sun and view, then `nimbus eval cloud-points`:
+/// every point is a first vertex lit from that sun, and the reported bias is the sum
+/// of the model's predictions over the sum of the targets, recomputed here row by row.
+#[test]
+fn cloud_points_reports_a_models_bias_on_a_fixed_lighting() {
+    use app::lab::eval::cloud_points::{EvalCloudPointsArgs, eval_cloud_points};
+    use models::cloud::datagen::CloudDataset;
+    use models::cloud::features::N_FEATURES;
+    let guard = temp_dir("cloud-points");
+    let data = guard.path().join("points");
+    let d = data.to_str().unwrap();
+    nimbus(&[
+        "datagen",
+        "cloud",
+        "--points",
+        "24",
+        "--points-per-cloud",
+        "8",
+        "--resolution",
+        "16",
+        "--samples",
+        "2",
+        "--presets",
+        "scene-a",
+        "--preset-every",
+        "1",
+        "--rho",
+        "20..20",
+        "--sun",
+        "0,-1,0",
+        "--view-sun-cos",
+        "0",
+        "--vertex-weights",
+        "1,0,0",
+        "--quiet",
+        "--out",
+        d,
+    ])
+    .unwrap();
+    let ds = CloudDataset::load(&data).unwrap();
+    assert_eq!(ds.manifest.settings.sun, Some([0.0, -1.0, 0.0]));
+    let rows = eval_cloud_points(&EvalCloudPointsArgs { data: vec![data.clone()], model: vec![] }).unwrap();
+    assert_eq!(rows.len(), 1);
+    let r = &rows[0];
+    assert_eq!(r.all.points, 24);
+    assert_eq!(r.by_vertex[0].as_ref().unwrap().points, 24);
+    assert!(r.by_vertex[1].is_none() && r.by_vertex[2].is_none());
+    let model = models::cloud::CloudModel::shipped().unwrap();
+    let mut scratch = model.mlp.scratch();
+    let (mut sp, mut st) = (0.0f64, 0.0f64);
+    for (f, t) in ds.features.chunks_exact(N_FEATURES).zip(ds.targets.chunks_exact(5)) {
+        sp += model.predict_features(f, &mut scratch) as f64;
+        st += t[0] as f64;
+    }
+    assert!(st > 0.0);
+    assert!((r.all.bias - (sp / st - 1.0)).abs() < 1e-9, "{} vs {}", r.all.bias, sp / st - 1.0);
+    // A bad sun is refused, naming the flag.
+    let e = nimbus(&["datagen", "cloud", "--points", "8", "--sun", "0,0", "--out", d]).unwrap_err();
+    assert!(e.to_string().contains("--sun"), "{e}");
+}

@@ -367,6 +367,11 @@ pub struct CloudArgs {
     /// that no training set draws; --presets is ignored.
     #[arg(long)]
     pub held_out: bool,
+    /// The same sun for every cloud: the direction its light travels, X,Y,Z (as a
+    /// scene file's sun.direction, e.g. 0,-1,0 from straight above); default: a
+    /// random sun per cloud. With --view-sun-cos it reproduces a fixed lighting.
+    #[arg(long, allow_hyphen_values = true)]
+    pub sun: Option<String>,
     #[command(flatten)]
     pub data: DatagenRunArgs,
 }
@@ -401,8 +406,18 @@ impl CloudArgs {
             view_sun_cos: self.view_sun_cos,
             aligned_views: self.aligned_views,
             held_out: self.held_out,
+            sun: self.sun.as_deref().map(parse_direction).transpose()?,
         };
         spec.validate()?;
         Ok(spec)
     }
+}
+
+/// "X,Y,Z" as a direction (checked non-zero by the spec).
+fn parse_direction(s: &str) -> Result<[f32; 3]> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|c| c.trim().parse::<f32>().with_context(|| format!("--sun: {c:?} is not a number")))
+        .collect::<Result<_>>()?;
+    v.try_into().map_err(|_| anyhow::anyhow!("--sun: give three components, such as 0,-1,0"))
 }

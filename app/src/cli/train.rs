@@ -62,6 +62,10 @@ pub struct TrainCloudArgs {
     /// Train on at most this many points (0: all).
     #[arg(long, default_value_t = 0)]
     pub max_points: usize,
+    /// Return the mean of the weights over every step of the last N epochs (0: the
+    /// last weights).
+    #[arg(long, default_value_t = 0)]
+    pub average_last: usize,
     /// Continue from PREFIX.checkpoint/ (same settings and data).
     #[arg(long)]
     pub resume: bool,
@@ -82,6 +86,7 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
             lr: args.lr,
             lr_decay: args.lr_decay,
             seed: args.seed,
+            average_last: args.average_last,
         },
         test_fraction: args.test_fraction,
         target: TargetColumn::parse(&args.target)
@@ -317,8 +322,9 @@ impl TrainObserver for BarObserver {
     }
 
     fn epoch(&self, r: &EpochRecord) {
+        let averaged = r.averaged_test_mse.map(|v| format!("  averaged {v:.5}")).unwrap_or_default();
         self.bar.println(format!(
-            "epoch {:>3}  lr {:.2e}  train MSE {:.5}  test MSE {:.5}  ({:.1} s)",
+            "epoch {:>3}  lr {:.2e}  train MSE {:.5}  test MSE {:.5}{averaged}  ({:.1} s)",
             r.epoch, r.lr, r.train_mse, r.test_mse, r.seconds
         ));
     }

@@ -75,6 +75,11 @@ pub struct CloudSpec {
     /// and [`held_out_cloud`]s, never those of a training set; `presets` is unused.
     #[serde(default)]
     pub held_out: bool,
+    /// The direction the sun's light travels, the same for every cloud (as a scene
+    /// file's `sun.direction`; normalized); None: a uniformly random sun per cloud.
+    /// With `view_sun_cos`, reproduces a fixed lighting, such as the evaluation's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sun: Option<[f32; 3]>,
 }
 
 impl Default for CloudSpec {
@@ -99,6 +104,7 @@ impl Default for CloudSpec {
             view_sun_cos: None,
             aligned_views: 0.3,
             held_out: false,
+            sun: None,
         }
     }
 }
@@ -145,6 +151,11 @@ impl CloudSpec {
         if let Some(c) = self.view_sun_cos {
             if !(-1.0..=1.0).contains(&c) {
                 return Err(setting("--view-sun-cos", format!("{c} must lie in [-1, 1]")));
+            }
+        }
+        if let Some(d) = self.sun {
+            if !(d.iter().all(|v| v.is_finite()) && Vec3::from_array(d).length() > 1e-6) {
+                return Err(setting("--sun", format!("{d:?} must be a non-zero finite direction")));
             }
         }
         if !(2..=1024).contains(&self.field_nodes) {
@@ -194,7 +205,8 @@ fn lerp(r: [f32; 2], u: f32) -> f32 {
     r[0] + (r[1] - r[0]) * u
 }
 
-/// Builds case `c` of `spec`: cloud, rho, albedo, g and a uniformly random sun.
+/// Builds case `c` of `spec`: cloud, rho, albedo, g and a uniformly random sun (or
+/// `spec.sun`).
 pub fn build_case(spec: &CloudSpec, c: u64) -> Result<Case, DatagenError> {
     let (name, params) = spec.cloud(c);
     let grid = modeler::build_grid(&params, spec.resolution).map_err(|e| setting("--presets", e.to_string()))?;
@@ -202,7 +214,8 @@ pub fn build_case(spec: &CloudSpec, c: u64) -> Result<Case, DatagenError> {
     let rho = log_lerp(spec.rho, rng.uniform());
     let albedo = spec.albedo[1] - (spec.albedo[1] - spec.albedo[0]) * rng.uniform().powi(3);
     let g = lerp(spec.g, rng.uniform());
-    let to_sun = engine::sampling::sample_uniform_sphere(rng.uniform2());
+    let random_to_sun = engine::sampling::sample_uniform_sphere(rng.uniform2());
+    let to_sun = spec.sun.map_or(random_to_sun, |d| -Vec3::from_array(d).normalize());
     let phase = PhaseFunction::henyey_greenstein(g).map_err(|e| setting("--g", e))?;
     let medium = Medium::new(Arc::new(grid), rho, albedo, phase).map_err(|e| setting("--rho", e.to_string()))?;
     let sun = Sun::new(-to_sun, Vec3::ONE, 0.0).expect("a unit direction");

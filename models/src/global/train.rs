@@ -65,6 +65,7 @@ impl TrainConfig {
             lr: self.lr,
             lr_decay: self.lr_decay,
             seed: self.seed,
+            average_last: 0,
         }
     }
 

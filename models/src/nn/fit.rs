@@ -1,8 +1,9 @@
 //! The training loop both MLP models share (the global model of thesis 5.2 and the
 //! cloud-aware model): a Glorot-initialized network, mini-batches in a seeded shuffle,
 //! mean squared error on standardized targets, SGD with momentum or Adam with a
-//! per-epoch learning-rate decay, per-epoch history, and a checkpoint after every
-//! epoch from which a run resumes to the same weights.
+//! per-epoch learning-rate decay, optionally the average of the weights over the last
+//! epochs (tail averaging), per-epoch history, and a checkpoint after every epoch from
+//! which a run resumes to the same weights.
 
 use crate::dataset::npy::write_bytes_atomically;
 use crate::nn::dense::Activation;
@@ -23,7 +24,17 @@ pub struct EpochRecord {
     /// Mean squared error in the transformed, standardized space.
     pub train_mse: f64,
     pub test_mse: f64,
+    /// The test loss of the averaged weights, in the epochs that average.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub averaged_test_mse: Option<f64>,
     pub seconds: f64,
+}
+
+impl EpochRecord {
+    /// The test loss of the network the fit returns if it ended after this epoch.
+    pub fn final_test_mse(&self) -> f64 {
+        self.averaged_test_mse.unwrap_or(self.test_mse)
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -104,6 +115,19 @@ impl Network {
         m
     }
 
+    /// A network with the given parameter values, in `params` order (weight, bias per
+    /// layer), as f32.
+    fn with_values(&self, values: &[Tensor]) -> candle_core::Result<Network> {
+        let mut params = vec![];
+        for pair in values.chunks_exact(2) {
+            params.push((
+                Var::from_tensor(&pair[0].to_dtype(DType::F32)?)?,
+                Var::from_tensor(&pair[1].to_dtype(DType::F32)?)?,
+            ));
+        }
+        Ok(Network { params, activation: self.activation })
+    }
+
     /// The fast evaluator of the same weights.
     pub fn to_mlp(&self) -> candle_core::Result<Mlp> {
         let mut layers = vec![];
@@ -150,6 +174,9 @@ struct CheckpointState<C> {
     epoch: usize,
     step: u64,
     history: Vec<EpochRecord>,
+    /// Steps summed into the average so far.
+    #[serde(default)]
+    averaged_steps: u64,
 }
 
 // The writers' errors name the file.
@@ -224,6 +251,12 @@ pub struct FitSchedule {
     pub lr: f64,
     pub lr_decay: f64,
     pub seed: u64,
+    /// The fit returns the mean of the weights after every step of the last this many
+    /// epochs (0: the last weights). Adam's steps stay about the learning rate in size
+    /// whatever the gradient, so late weights wander around the minimum; their mean
+    /// sits nearer its centre.
+    #[serde(default)]
+    pub average_last: usize,
 }
 
 impl FitSchedule {
@@ -238,6 +271,9 @@ impl FitSchedule {
             crate::nn::optim::check_schedule(self.epochs, self.batch, self.lr, self.lr_decay, test_fraction)
         {
             return bad(flag, why);
+        }
+        if self.average_last > self.epochs {
+            return bad("--average-last", "must be at most --epochs");
         }
         if let Optimizer::Sgd { momentum } = self.optimizer {
             if !(0.0..1.0).contains(&momentum) {
@@ -287,6 +323,11 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
     let mut opt = OptState::new(&vars)?;
     let mut history: Vec<EpochRecord> = vec![];
     let mut first_epoch = 0;
+    // Tail averaging: running sums of the parameters in f64, from this epoch on.
+    let average_from = cfg.epochs - cfg.average_last;
+    let mut avg_sum: Vec<Tensor> =
+        vars.iter().map(|v| v.as_tensor().zeros_like()?.to_dtype(DType::F64)).collect::<candle_core::Result<_>>()?;
+    let mut averaged_steps = 0u64;
     let state_path = checkpoint.join("state.json");
     if resume && state_path.exists() {
         let text = std::fs::read_to_string(&state_path)
@@ -309,8 +350,12 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
             var.set(&get(format!("param.{k}"))?)?;
             opt.m[k] = get(format!("m.{k}"))?;
             opt.v[k] = get(format!("v.{k}"))?;
+            if st.averaged_steps > 0 {
+                avg_sum[k] = get(format!("avg.{k}"))?;
+            }
         }
         opt.step = st.step;
+        averaged_steps = st.averaged_steps;
         first_epoch = st.epoch;
         history = st.history;
     }
@@ -349,15 +394,26 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
             let loss = data.loss.eval(&net.forward(&x)?, &y)?;
             let grads = loss.backward()?;
             opt.apply(cfg.optimizer, lr, &vars, &grads)?;
+            if epoch >= average_from {
+                for (sum, var) in avg_sum.iter_mut().zip(&vars) {
+                    *sum = (&*sum + var.as_tensor().to_dtype(DType::F64)?)?;
+                }
+                averaged_steps += 1;
+            }
             loss_sum += loss.to_scalar::<f32>()? as f64 * idx.len() as f64;
             trained_samples += idx.len() as u64;
             observer.batch(epoch, b + 1, n_batches);
         }
+        let averaged_test_mse = match averaged_steps {
+            0 => None,
+            n => Some(test_mse(&net.with_values(&averages(&avg_sum, n)?)?)?),
+        };
         let record = EpochRecord {
             epoch: epoch + 1,
             lr,
             train_mse: loss_sum / n_train as f64,
             test_mse: test_mse(&net)?,
+            averaged_test_mse,
             seconds: t0.elapsed().as_secs_f64(),
         };
         if !record.train_mse.is_finite() {
@@ -375,6 +431,9 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
             t.insert(format!("param.{k}"), var.as_tensor().clone());
             t.insert(format!("m.{k}"), opt.m[k].clone());
             t.insert(format!("v.{k}"), opt.v[k].clone());
+            if averaged_steps > 0 {
+                t.insert(format!("avg.{k}"), avg_sum[k].clone());
+            }
         }
         save_tensors(&t, &checkpoint.join("state.safetensors"))?;
         let st = CheckpointState {
@@ -384,22 +443,124 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
             epoch: epoch + 1,
             step: opt.step,
             history: history.clone(),
+            averaged_steps,
         };
         write_text(&state_path, &serde_json::to_string_pretty(&st).expect("serializes"))?;
         write_history(paths, &history)?;
     }
     let samples_per_second = trained_samples as f64 / train_started.elapsed().as_secs_f64().max(1e-9);
+    let net = match averaged_steps {
+        0 => net,
+        n => net.with_values(&averages(&avg_sum, n)?)?,
+    };
     Ok(Fitted { net, history, samples_per_second })
+}
+
+/// The running sums divided by the number of steps summed.
+fn averages(sums: &[Tensor], steps: u64) -> candle_core::Result<Vec<Tensor>> {
+    sums.iter().map(|s| s.affine(1.0 / steps as f64, 0.0)).collect()
 }
 
 /// Writes OUT.loss.csv and OUT.loss.png from the history.
 pub fn write_history(paths: &TrainPaths, history: &[EpochRecord]) -> Result<(), TrainError> {
-    let mut csv = String::from("epoch,lr,train_mse,test_mse,seconds\n");
+    let mut csv = String::from("epoch,lr,train_mse,test_mse,averaged_test_mse,seconds\n");
     for h in history {
-        csv += &format!("{},{},{},{},{:.3}\n", h.epoch, h.lr, h.train_mse, h.test_mse, h.seconds);
+        let avg = h.averaged_test_mse.map(|v| v.to_string()).unwrap_or_default();
+        csv += &format!("{},{},{},{},{avg},{:.3}\n", h.epoch, h.lr, h.train_mse, h.test_mse, h.seconds);
     }
     write_text(&paths.csv, &csv)?;
     let points: Vec<(f64, f64, f64)> = history.iter().map(|h| (h.epoch as f64, h.train_mse, h.test_mse)).collect();
     let png = crate::plot::loss_plot_png("", "MSE", [crate::plot::TRAIN_COLOUR, crate::plot::TEST_COLOUR], &points);
     Ok(write_bytes_atomically(&paths.plot, &png)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn data() -> FitData {
+        let mut rng = Rng::new(7, 0, 0);
+        let n = 64;
+        let x: Vec<f32> = (0..n * 3).map(|_| rng.uniform() * 2.0 - 1.0).collect();
+        let y: Vec<f32> = x.chunks_exact(3).map(|r| r[0] * r[1] - 0.5 * r[2]).collect();
+        FitData { n_f: 3, x_train: x.clone(), y_train: y.clone(), x_test: x, y_test: y, loss: Loss::Mse }
+    }
+
+    fn run(schedule: &FitSchedule, dir: &Path, name: &str, resume: bool, observer: &dyn TrainObserver) -> Fitted {
+        let config = schedule.clone();
+        let identity = RunIdentity { config: &config, sources: &[], points: 64 };
+        fit(&data(), schedule, &TrainPaths::new(&dir.join(name)), resume, identity, observer).unwrap()
+    }
+
+    fn values(net: &Network) -> Vec<f32> {
+        net.params
+            .iter()
+            .flat_map(|(w, b)| [w, b])
+            .flat_map(|v| v.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap())
+            .collect()
+    }
+
+    fn schedule(epochs: usize, average_last: usize) -> FitSchedule {
+        FitSchedule {
+            hidden: vec![8],
+            activation: Activation::Tanh,
+            epochs,
+            batch: 64,
+            optimizer: Optimizer::Adam,
+            lr: 1e-2,
+            lr_decay: 0.9,
+            seed: 3,
+            average_last,
+        }
+    }
+
+    struct StopAfter(usize, std::sync::atomic::AtomicUsize);
+    impl TrainObserver for StopAfter {
+        fn epoch(&self, r: &EpochRecord) {
+            self.1.store(r.epoch, std::sync::atomic::Ordering::SeqCst);
+        }
+        fn cancelled(&self) -> bool {
+            self.1.load(std::sync::atomic::Ordering::SeqCst) >= self.0
+        }
+    }
+
+    /// One step per epoch (the batch holds every row): averaging the last two epochs
+    /// returns the mean of the weights after the first and after the second step,
+    /// which runs of one and two epochs without averaging give independently.
+    #[test]
+    fn tail_averaging_returns_the_mean_of_the_last_weights() {
+        let dir = tempfile::tempdir().unwrap();
+        let one = values(&run(&schedule(1, 0), dir.path(), "one", false, &Quiet).net);
+        let two = values(&run(&schedule(2, 0), dir.path(), "two", false, &Quiet).net);
+        let fitted = run(&schedule(2, 2), dir.path(), "avg", false, &Quiet);
+        let avg = values(&fitted.net);
+        assert_ne!(one, two);
+        for ((a, b), m) in one.iter().zip(&two).zip(&avg) {
+            let want = 0.5 * (a + b);
+            assert!((m - want).abs() <= 1e-6 * want.abs().max(1.0), "{m} vs {want}");
+        }
+        // The averaged loss is recorded in the averaging epochs only.
+        let h = &fitted.history;
+        assert!(h.iter().all(|r| r.averaged_test_mse.is_some()));
+        let last = values(&run(&schedule(2, 1), dir.path(), "last", false, &Quiet).net);
+        assert_eq!(last, two, "averaging one step is that step's weights");
+        assert!(schedule(2, 3).validate(0.1).unwrap_err().to_string().contains("--average-last"));
+    }
+
+    /// Stopped inside the averaging window and resumed: the same averaged weights as
+    /// the straight run.
+    #[test]
+    fn an_averaging_run_resumes_to_the_same_weights() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = FitSchedule { batch: 16, ..schedule(5, 3) };
+        let straight = values(&run(&s, dir.path(), "a", false, &Quiet).net);
+        let config = s.clone();
+        let identity = RunIdentity { config: &config, sources: &[], points: 64 };
+        let stop = StopAfter(3, Default::default());
+        let paths = TrainPaths::new(&dir.path().join("b"));
+        assert!(matches!(fit(&data(), &s, &paths, false, identity, &stop), Err(TrainError::Cancelled(3))));
+        let resumed = run(&s, dir.path(), "b", true, &Quiet);
+        assert_eq!(resumed.history.len(), 5);
+        assert_eq!(values(&resumed.net), straight, "resumed averaging differs");
+    }
 }

@@ -4,6 +4,7 @@
 //! (thesis 6.5). [`common`] holds the tracked renders, the render cache's files and
 //! image sheets they share.
 
+pub mod cloud_points;
 pub mod common;
 pub mod global;
 pub mod p2p;
@@ -22,6 +23,9 @@ pub enum EvalCommand {
     /// mode's frames against path-traced reference frames, and the static flicker
     /// over several seeds.
     Temporal(temporal::EvalTemporalArgs),
+    /// A cloud-aware model's relative bias on point data sets of `nimbus datagen
+    /// cloud`: overall, per camera-path vertex and per cloud.
+    CloudPoints(cloud_points::EvalCloudPointsArgs),
 }
 
 /// Runs `nimbus eval` (the global model's study) or `nimbus eval p2p`.
@@ -29,6 +33,7 @@ pub fn run(which: Option<EvalCommand>, args: global::EvalArgs) -> Result<()> {
     match which {
         Some(EvalCommand::P2p(args)) => p2p::eval_p2p(&args).map(|_| ()),
         Some(EvalCommand::Temporal(args)) => temporal::eval_temporal(&args).map(|_| ()),
+        Some(EvalCommand::CloudPoints(args)) => cloud_points::eval_cloud_points(&args).map(|_| ()),
         None => global::eval(&args).map(|_| ()),
     }
 }
