@@ -10,10 +10,10 @@ use models::cloud::features::N_FEATURES;
 use models::cloud::train::{CloudTrainConfig, CloudTrainData, train};
 use models::cloud::{BoundCloudModel, CloudModel};
 use models::dataset::{DataSpec, Shard};
-use models::nn::fit::{EpochRecord, Quiet, TrainObserver};
+use models::nn::fit::{Quiet, StopAfterEpochs};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 fn spec() -> CloudSpec {
     CloudSpec {
@@ -125,16 +125,6 @@ fn generator_is_deterministic_resumable_and_shardable() {
     assert!(e.to_string().contains("held-out"), "{e}");
 }
 
-struct StopAfter(usize, AtomicUsize);
-impl TrainObserver for StopAfter {
-    fn epoch(&self, r: &EpochRecord) {
-        self.1.store(r.epoch, Ordering::SeqCst);
-    }
-    fn cancelled(&self) -> bool {
-        self.1.load(Ordering::SeqCst) >= self.0
-    }
-}
-
 #[test]
 fn training_resumes_and_the_model_round_trips() {
     let s = CloudSpec { points: 96, points_per_cloud: 8, ..spec() };
@@ -150,7 +140,7 @@ fn training_resumes_and_the_model_round_trips() {
     assert_eq!(report.test.points + report.train_points, 96);
     assert!(report.test.bias.is_finite() && report.test.bias_std_error > 0.0, "{:?}", report.test);
     // Stopped after 2 epochs, resumed: the same weights as the straight run.
-    let stop = StopAfter(2, Default::default());
+    let stop = StopAfterEpochs::new(2);
     let e = train(&data, None, &cfg, &root.path().join("b"), false, "test", "test", &stop).err().unwrap();
     assert!(e.to_string().contains("--resume"), "{e}");
     train(&data, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();

@@ -9,9 +9,10 @@ use models::global::directions::DirectionSetKind;
 use models::global::model::{
     FeatureLayout, GlobalModel, TargetKind, predicted_l_i, single_scattering, single_scattering_phase, transform_target,
 };
-use models::global::train::{EpochRecord, Network, Quiet, TrainConfig, TrainData, TrainObserver, train};
+use models::global::train::{Network, Quiet, TrainConfig, TrainData, train};
 use models::nn::Activation;
 use models::nn::Optimizer;
+use models::nn::fit::StopAfterEpochs;
 use std::sync::atomic::AtomicBool;
 
 /// A fresh directory, removed with the returned guard.
@@ -186,16 +187,6 @@ fn save_load_predicts_identically_and_bad_files_are_refused() {
     assert!(e.contains("bad.json"), "{e}");
 }
 
-struct StopAfter(usize, std::sync::atomic::AtomicUsize);
-impl TrainObserver for StopAfter {
-    fn epoch(&self, r: &EpochRecord) {
-        self.1.store(r.epoch, std::sync::atomic::Ordering::SeqCst);
-    }
-    fn cancelled(&self) -> bool {
-        self.1.load(std::sync::atomic::Ordering::SeqCst) >= self.0
-    }
-}
-
 #[test]
 fn an_interrupted_training_resumes_to_the_same_weights() {
     let (data, _) = smooth_data(1000, 4);
@@ -203,7 +194,7 @@ fn an_interrupted_training_resumes_to_the_same_weights() {
     let guard = temp("resume");
     let dir = guard.path().to_path_buf();
     let (full, _) = train(&data, &cfg, &dir.join("a"), false, "test", "test", &Quiet).unwrap();
-    let stop = StopAfter(2, Default::default());
+    let stop = StopAfterEpochs::new(2);
     let e = train(&data, &cfg, &dir.join("b"), false, "test", "test", &stop).err().unwrap();
     assert!(e.to_string().contains("--resume"), "{e}");
     let (resumed, report) = train(&data, &cfg, &dir.join("b"), true, "test", "test", &Quiet).unwrap();

@@ -201,6 +201,29 @@ pub trait TrainObserver: Sync {
 pub struct Quiet;
 impl TrainObserver for Quiet {}
 
+/// Asks the run to stop once this many epochs have finished (a stop at a known
+/// point, as Ctrl-C would make one, for resume checks).
+#[derive(Debug, Default)]
+pub struct StopAfterEpochs {
+    epochs: usize,
+    done: std::sync::atomic::AtomicUsize,
+}
+
+impl StopAfterEpochs {
+    pub fn new(epochs: usize) -> Self {
+        StopAfterEpochs { epochs, done: Default::default() }
+    }
+}
+
+impl TrainObserver for StopAfterEpochs {
+    fn epoch(&self, r: &EpochRecord) {
+        self.done.store(r.epoch, std::sync::atomic::Ordering::SeqCst);
+    }
+    fn cancelled(&self) -> bool {
+        self.done.load(std::sync::atomic::Ordering::SeqCst) >= self.epochs
+    }
+}
+
 /// Standardized training and test rows, and the targets the loss compares with.
 pub struct FitData {
     pub n_f: usize,
@@ -514,16 +537,6 @@ mod tests {
         }
     }
 
-    struct StopAfter(usize, std::sync::atomic::AtomicUsize);
-    impl TrainObserver for StopAfter {
-        fn epoch(&self, r: &EpochRecord) {
-            self.1.store(r.epoch, std::sync::atomic::Ordering::SeqCst);
-        }
-        fn cancelled(&self) -> bool {
-            self.1.load(std::sync::atomic::Ordering::SeqCst) >= self.0
-        }
-    }
-
     /// One step per epoch (the batch holds every row): averaging the last two epochs
     /// returns the mean of the weights after the first and after the second step,
     /// which runs of one and two epochs without averaging give independently.
@@ -556,7 +569,7 @@ mod tests {
         let straight = values(&run(&s, dir.path(), "a", false, &Quiet).net);
         let config = s.clone();
         let identity = RunIdentity { config: &config, sources: &[], points: 64 };
-        let stop = StopAfter(3, Default::default());
+        let stop = StopAfterEpochs::new(3);
         let paths = TrainPaths::new(&dir.path().join("b"));
         assert!(matches!(fit(&data(), &s, &paths, false, identity, &stop), Err(TrainError::Cancelled(3))));
         let resumed = run(&s, dir.path(), "b", true, &Quiet);
