@@ -18,6 +18,7 @@
 
 use engine::DensityGrid;
 use glam::Vec3;
+use rayon::prelude::*;
 
 /// Coarse voxels of padding added around each new level: the filtered density spreads
 /// beyond the cloud, and lookups there must see it.
@@ -340,28 +341,45 @@ fn resample_axis(
     let (s_in, s_out) = (stride(dims, axis), stride(out_dims, axis));
     let total: usize = out_dims.iter().product();
     let mut out = vec![0.0f32; total];
-    // Iterate over all lines along `axis`.
-    let others: Vec<usize> = (0..3).filter(|&a| a != axis).collect();
-    let (a0, a1) = (others[0], others[1]);
-    for i1 in 0..dims[a1] {
-        for i0 in 0..dims[a0] {
-            let mut base_in = 0;
-            let mut base_out = 0;
-            for (a, i) in [(a0, i0), (a1, i1)] {
-                base_in += i * stride(dims, a);
-                base_out += i * stride(out_dims, a);
-            }
-            for (j, (lo, w)) in taps.iter().enumerate() {
-                let mut v = 0.0f32;
-                for (k, wk) in w.iter().enumerate() {
-                    let i = lo + k as i64;
-                    if i >= 0 && i < n_in {
-                        v += wk * data[base_in + i as usize * s_in];
+    // Each output value is the same sum in the same order as a line-by-line pass,
+    // computed in parallel over output slices (z), so the result is bit for bit the
+    // same on any thread count.
+    let slice_len = out_dims[0] * out_dims[1];
+    if axis == 2 {
+        // Along z: output slice j is a weighted sum of whole input slices.
+        let plane = dims[0] * dims[1];
+        out.par_chunks_mut(slice_len).zip(taps.par_iter()).for_each(|(slice, (lo, w))| {
+            for (k, wk) in w.iter().enumerate() {
+                let i = lo + k as i64;
+                if i >= 0 && i < n_in {
+                    let src = &data[i as usize * plane..(i as usize + 1) * plane];
+                    for (o, v) in slice.iter_mut().zip(src) {
+                        *o += wk * v;
                     }
                 }
-                out[base_out + j * s_out] = v;
             }
-        }
+        });
+    } else {
+        // Along x or y: the lines of one z slice stay within it.
+        let in_slice = dims[0] * dims[1];
+        let other = 1 - axis;
+        out.par_chunks_mut(slice_len).enumerate().for_each(|(z, slice)| {
+            let src = &data[z * in_slice..(z + 1) * in_slice];
+            for i_other in 0..dims[other] {
+                let base_in = i_other * stride(dims, other);
+                let base_out = i_other * stride(out_dims, other);
+                for (j, (lo, w)) in taps.iter().enumerate() {
+                    let mut v = 0.0f32;
+                    for (k, wk) in w.iter().enumerate() {
+                        let i = lo + k as i64;
+                        if i >= 0 && i < n_in {
+                            v += wk * src[base_in + i as usize * s_in];
+                        }
+                    }
+                    slice[base_out + j * s_out] = v;
+                }
+            }
+        });
     }
     (out, out_dims)
 }
@@ -385,7 +403,6 @@ pub struct DensityPyramid {
 /// Means of `f`^3 blocks of voxels (the last blocks cut by the bounds count the
 /// voxels outside as zero), x fastest, in parallel over the output.
 fn block_average(grid: &DensityGrid, f: u32) -> Vec<f32> {
-    use rayon::prelude::*;
     let n = grid.dims();
     let d = (n + (f - 1)) / f;
     let inv = 1.0 / (f as f64).powi(3);
