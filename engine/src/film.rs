@@ -92,40 +92,27 @@ impl Film {
     /// Adds one pass: exactly one sample for every pixel, in pixel order. A sample
     /// that is not finite never enters a buffer: it counts as zero and is recorded.
     pub fn add_pass(&mut self, samples: &[PathSample]) {
-        assert_eq!(samples.len(), self.pixel_count(), "a pass covers every pixel once");
-        for (i, s) in samples.iter().enumerate() {
-            let s = if s.is_finite() {
-                *s
-            } else {
-                self.rejected += 1;
-                PathSample::default()
-            };
-            let (d, l, h) = (s.direct.as_dvec3(), s.low.as_dvec3(), s.high.as_dvec3());
-            self.layers[0].add(i, d.to_array());
-            self.layers[1].add(i, l.to_array());
-            self.layers[2].add(i, h.to_array());
-            // Summed in f64, so full = direct + low + high to f64 rounding.
-            self.layers[3].add(i, (d + l + h).to_array());
-        }
-        self.spp += 1;
+        self.add_passes(&[samples]);
     }
 
     /// Adds several passes, in order: the same sums bit for bit as [`Film::add_pass`]
     /// once per pass (every pixel still receives its passes in order), with the four
     /// buffers accumulated on parallel threads, so the accumulation does not hold one
     /// core idle between batches of passes.
-    pub fn add_passes(&mut self, passes: &[Vec<PathSample>]) {
+    pub fn add_passes<P: AsRef<[PathSample]> + Sync>(&mut self, passes: &[P]) {
         let n = self.pixel_count();
         for samples in passes {
-            assert_eq!(samples.len(), n, "a pass covers every pixel once");
+            assert_eq!(samples.as_ref().len(), n, "a pass covers every pixel once");
         }
-        let rejected: usize = passes.par_iter().map(|samples| samples.iter().filter(|s| !s.is_finite()).count()).sum();
+        let rejected: usize =
+            passes.par_iter().map(|samples| samples.as_ref().iter().filter(|s| !s.is_finite()).count()).sum();
         self.layers.par_iter_mut().enumerate().for_each(|(k, layer)| {
             for samples in passes {
-                for (i, s) in samples.iter().enumerate() {
-                    // A non-finite sample counts as zero, as in `add_pass`.
+                for (i, s) in samples.as_ref().iter().enumerate() {
+                    // A non-finite sample counts as zero.
                     let s = if s.is_finite() { *s } else { PathSample::default() };
                     let (d, l, h) = (s.direct.as_dvec3(), s.low.as_dvec3(), s.high.as_dvec3());
+                    // Summed in f64, so full = direct + low + high to f64 rounding.
                     let v = match k {
                         0 => d,
                         1 => l,
