@@ -101,6 +101,8 @@ fn generator_is_deterministic_resumable_and_shardable() {
     assert!(e.to_string().contains("--presets") && e.to_string().contains("held-out"), "{e}");
     let e = CloudSpec { vertex_weights: [0.5, 0.5, 0.5], ..s.clone() }.validate().unwrap_err();
     assert!(e.to_string().contains("--vertex-weights"), "{e}");
+    let e = CloudSpec { g_power: 0.0, ..s.clone() }.validate().unwrap_err();
+    assert!(e.to_string().contains("--g-power"), "{e}");
     let e = CloudSpec { sun: Some([0.0, 0.0, 0.0]), ..s.clone() }.validate().unwrap_err();
     assert!(e.to_string().contains("--sun"), "{e}");
 

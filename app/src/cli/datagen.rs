@@ -344,6 +344,9 @@ pub struct CloudArgs {
     /// Henyey-Greenstein g range.
     #[arg(long, default_value = "0..0.9")]
     pub g: String,
+    /// g is drawn as MIN + (MAX - MIN) (1 - u^P), u uniform: 1 uniform, larger toward MAX.
+    #[arg(long, default_value_t = 1.0)]
+    pub g_power: f32,
     /// Paths per point (the target is their mean; the first is also stored alone).
     #[arg(long, default_value_t = 16)]
     pub samples: u64,
@@ -399,6 +402,7 @@ impl CloudArgs {
             rho: parse_range("--rho", &self.rho)?,
             albedo: parse_range("--albedo", &self.albedo)?,
             g: parse_range("--g", &self.g)?,
+            g_power: self.g_power,
             samples: self.samples,
             vertex_weights,
             field_nodes: self.field_nodes,

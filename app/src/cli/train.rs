@@ -66,6 +66,15 @@ pub struct TrainCloudArgs {
     /// last weights).
     #[arg(long, default_value_t = 0)]
     pub average_last: usize,
+    /// Power of the relative loss's denominator: 2 weighs relative errors alike, 1
+    /// absolute errors over the value (bright points count more, as in an image).
+    #[arg(long, default_value_t = 1.0)]
+    pub loss_power: f32,
+    /// After training, refit the output layer on the whole training split with this
+    /// many Gauss-Newton iterations (0: none): the exact gradient, unbiased where
+    /// Adam's steps cut the heavy tails of noisy targets.
+    #[arg(long, default_value_t = 10)]
+    pub refit_output: usize,
     /// Continue from PREFIX.checkpoint/ (same settings and data).
     #[arg(long)]
     pub resume: bool,
@@ -93,6 +102,8 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
             .with_context(|| format!("--target {:?}: choose mean or one-path", args.target))?,
         eps: args.eps,
         max_points: args.max_points,
+        refit_output: args.refit_output,
+        loss_power: args.loss_power,
     };
     cfg.validate()?;
     let threads = init_threads(args.run.threads)?;
@@ -147,6 +158,16 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
         "trained on {} points in {:.1} s ({:.0} samples/s)",
         report.train_points, report.seconds, report.samples_per_second
     );
+    if let Some(r) = &report.refit {
+        println!(
+            "output layer refitted in {} iterations: training loss {:.4} -> {:.4}, training bias {:+.2} % -> {:+.2} %",
+            r.iterations,
+            r.loss_before,
+            r.loss_after,
+            100.0 * r.bias_before,
+            100.0 * r.bias_after
+        );
+    }
     line("test clouds", &report.test);
     if let Some(h) = &report.held_out {
         line("held-out clouds", h);

@@ -29,6 +29,10 @@ use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
+fn uniform_power() -> f32 {
+    1.0
+}
+
 /// Presets kept out of every training set: the held-out clouds the model is judged on
 /// (with the random held-out clouds of [`held_out_cloud`]).
 pub const HELD_OUT_PRESETS: [&str; 3] = ["set-10", "set-11", "set-12"];
@@ -50,8 +54,13 @@ pub struct CloudSpec {
     /// Albedo range [min, max], drawn as max - (max - min) u^3: toward max, where
     /// artists work and where multiple scattering changes fastest.
     pub albedo: [f32; 2],
-    /// Henyey-Greenstein g.
+    /// Henyey-Greenstein g range [min, max], drawn as min + (max - min) (1 - u^g_power)
+    /// (u uniform): uniform for 1, toward max for larger powers (clouds scatter forward, g near
+    /// 0.85, where multiple scattering is most peaked and hardest to learn).
     pub g: [f32; 2],
+    /// See `g`.
+    #[serde(default = "uniform_power")]
+    pub g_power: f32,
     /// Paths per point.
     pub samples: u64,
     /// Probabilities of the query being the 1st, 2nd, 3rd scattering vertex of its
@@ -97,6 +106,7 @@ impl Default for CloudSpec {
             rho: [5.0, 320.0],
             albedo: [0.9, 1.0],
             g: [0.0, 0.9],
+            g_power: 1.0,
             samples: 16,
             vertex_weights: [0.5, 0.3, 0.2],
             field_nodes: 128,
@@ -138,6 +148,9 @@ impl CloudSpec {
         check_range("--rho", self.rho, |v| v > 0.0 && v <= 10_000.0, "(0, 10000]")?;
         check_range("--albedo", self.albedo, |v| (0.0..=1.0).contains(&v), "[0, 1]")?;
         check_range("--g", self.g, |v| v > -1.0 && v < 1.0, "(-1, 1)")?;
+        if !(self.g_power.is_finite() && (0.1..=10.0).contains(&self.g_power)) {
+            return Err(setting("--g-power", format!("{} must lie in 0.1 ..= 10", self.g_power)));
+        }
         if !(1..=1_000_000).contains(&self.samples) {
             return Err(setting("--samples", format!("{} must lie in 1 ..= 1000000", self.samples)));
         }
@@ -205,17 +218,36 @@ fn lerp(r: [f32; 2], u: f32) -> f32 {
     r[0] + (r[1] - r[0]) * u
 }
 
+/// The medium and sun of one case.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CaseMedium {
+    pub rho: f32,
+    pub albedo: f32,
+    pub g: f32,
+    /// Unit direction toward the sun.
+    pub to_sun: Vec3,
+}
+
+/// Case `c`'s rho (log-uniform), albedo and g (toward their maxima as `spec` says) and
+/// sun (uniform, or `spec.sun`).
+pub fn case_medium(spec: &CloudSpec, c: u64) -> CaseMedium {
+    let mut rng = Rng::new(spec.seed, c, 0x6361_7365); // "case"
+    let rho = log_lerp(spec.rho, rng.uniform());
+    let albedo = spec.albedo[1] - (spec.albedo[1] - spec.albedo[0]) * rng.uniform().powi(3);
+    let u = rng.uniform();
+    // 1 - (1 - u)^p, written so that p = 1 is u itself, bit for bit.
+    let g = lerp(spec.g, if spec.g_power == 1.0 { u } else { 1.0 - (1.0 - u).powf(spec.g_power) });
+    let random_to_sun = engine::sampling::sample_uniform_sphere(rng.uniform2());
+    let to_sun = spec.sun.map_or(random_to_sun, |d| -Vec3::from_array(d).normalize());
+    CaseMedium { rho, albedo, g, to_sun }
+}
+
 /// Builds case `c` of `spec`: cloud, rho, albedo, g and a uniformly random sun (or
 /// `spec.sun`).
 pub fn build_case(spec: &CloudSpec, c: u64) -> Result<Case, DatagenError> {
     let (name, params) = spec.cloud(c);
     let grid = modeler::build_grid(&params, spec.resolution).map_err(|e| setting("--presets", e.to_string()))?;
-    let mut rng = Rng::new(spec.seed, c, 0x6361_7365); // "case"
-    let rho = log_lerp(spec.rho, rng.uniform());
-    let albedo = spec.albedo[1] - (spec.albedo[1] - spec.albedo[0]) * rng.uniform().powi(3);
-    let g = lerp(spec.g, rng.uniform());
-    let random_to_sun = engine::sampling::sample_uniform_sphere(rng.uniform2());
-    let to_sun = spec.sun.map_or(random_to_sun, |d| -Vec3::from_array(d).normalize());
+    let CaseMedium { rho, albedo, g, to_sun } = case_medium(spec, c);
     let phase = PhaseFunction::henyey_greenstein(g).map_err(|e| setting("--g", e))?;
     let medium = Medium::new(Arc::new(grid), rho, albedo, phase).map_err(|e| setting("--rho", e.to_string()))?;
     let sun = Sun::new(-to_sun, Vec3::ONE, 0.0).expect("a unit direction");
@@ -227,10 +259,15 @@ pub fn build_case(spec: &CloudSpec, c: u64) -> Result<Case, DatagenError> {
 
 /// A query like the renderer's: a camera ray from a random view toward the cloud,
 /// followed by delta tracking to its `vertex`-th scattering event; the query direction
-/// points back along the path. Paths that leave first are drawn again (at most 1024
-/// times; a cloud too thin for that gets a uniform point of its box). `view`, if
-/// given, is (direction to the sun, cosine): the view direction then makes that
-/// cosine with the sun's.
+/// points back along the path. The rays are those of a distant camera that sees the
+/// whole cloud: parallel to the view direction and uniform over the disc that the
+/// box's bounding sphere casts on the image, so every pixel of the cloud is as likely
+/// as in an image, its silhouette's fringe as much as its centre (rays aimed at points
+/// near the centre, as a first version drew them, reach the outer fifth of a round
+/// cloud's disc about a fifth as often as its pixels do). Paths that miss or leave
+/// first are drawn again (at most 1024 times; a cloud too thin for that gets a uniform
+/// point of its box). `view`, if given, is (direction to the sun, cosine): the view
+/// direction then makes that cosine with the sun's.
 pub fn camera_path_query(medium: &Medium, vertex: u32, view: Option<(Vec3, f32)>, rng: &mut Rng) -> (Vec3, Vec3) {
     let b = medium.bounds();
     let (c, r) = (b.center(), 0.5 * b.extent().length());
@@ -243,9 +280,10 @@ pub fn camera_path_query(medium: &Medium, vertex: u32, view: Option<(Vec3, f32)>
                 engine::sampling::local_to_world(Vec3::new(sin * phi.cos(), sin * phi.sin(), cos), to_sun)
             }
         };
-        let eye = c + dir * (2.0 * r);
-        let aim = c + (Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5) * b.extent() * 0.6;
-        let d = (aim - eye).normalize();
+        let (t, s) = engine::sampling::coordinate_system(dir);
+        let offset = engine::sampling::sample_uniform_disk(rng.uniform2()) * r;
+        let eye = c + dir * (2.0 * r) + t * offset.x + s * offset.y;
+        let d = -dir;
         let FreeFlight::Collision { t } = medium.sample_free_flight(eye, d, f32::INFINITY, rng) else { continue };
         let (mut x, mut wo) = (eye + d * t, -d);
         let mut reached = true;
@@ -321,7 +359,7 @@ pub struct CloudHeader {
 
 impl DataSpec for CloudSpec {
     const FORMAT: &'static str = "nimbus-cloud-dataset";
-    const FORMAT_VERSION: u32 = 5;
+    const FORMAT_VERSION: u32 = 6;
     const WHAT: &'static str = "a cloud data set";
     const TARGET_COLUMNS: [&'static str; 5] = ["L_ms", "std_error", "samples", "L_ms_one_path", "vertex"];
     type Header = CloudHeader;
@@ -424,5 +462,77 @@ impl CloudDataset {
     /// The cloud (chunk) of row `i`.
     pub fn cloud_of(&self, i: usize) -> u64 {
         i as u64 / self.manifest.settings.points_per_cloud
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use engine::stats::chi2_test;
+
+    /// First vertices of the camera paths land where an image's pixels do: seen along
+    /// a fixed axis, the first collisions with an opaque cube are uniform over its
+    /// square silhouette, fringe as often as centre (chi-square on a 10 x 10 grid of
+    /// the inner 0.9 of the square, away from the half voxel where the trilinear
+    /// density falls off).
+    #[test]
+    fn first_vertices_are_uniform_over_the_silhouette() {
+        let n = 16u32;
+        let grid = engine::DensityGrid::new(
+            glam::UVec3::splat(n),
+            vec![1.0; (n * n * n) as usize],
+            Vec3::splat(-0.5),
+            Vec3::splat(1.0 / n as f32),
+        )
+        .unwrap();
+        let medium = Medium::new(Arc::new(grid), 2000.0, 1.0, PhaseFunction::Isotropic).unwrap();
+        let mut rng = Rng::new(3, 0, 0);
+        let (bins, half) = (10usize, 0.45f32);
+        let mut counts = vec![0.0f64; bins * bins];
+        let mut inside = 0u64;
+        for _ in 0..200_000 {
+            // Viewed from +y (the camera's direction makes cosine 1 with +y).
+            let (x, wo) = camera_path_query(&medium, 1, Some((Vec3::Y, 1.0)), &mut rng);
+            assert!((wo - Vec3::Y).length() < 1e-5, "the query looks back along the view: {wo}");
+            if x.x.abs() < half && x.z.abs() < half {
+                let bin = |v: f32| (((v + half) / (2.0 * half)) * bins as f32) as usize;
+                counts[bin(x.x).min(bins - 1) * bins + bin(x.z).min(bins - 1)] += 1.0;
+                inside += 1;
+            }
+        }
+        let expected = vec![inside as f64 / (bins * bins) as f64; bins * bins];
+        let chi = chi2_test(&counts, &expected, 5.0);
+        assert!(chi.p_value > 1e-4, "first vertices not uniform over the silhouette: {chi:?}");
+        // The inner 0.9 x 0.9 gets its share of the silhouette, which the density's
+        // half-voxel falloff widens to 1 + 1/n (opaque there too at this rho); the
+        // binomial standard deviation of the share is 0.001.
+        let share = inside as f64 / 200_000.0;
+        let expected = 0.81 / (1.0 + 1.0 / n as f64).powi(2);
+        assert!((share - expected).abs() < 0.005, "share of the inner square {share}, expected {expected}");
+    }
+
+    /// g is drawn as min + (max - min) (1 - u^p): ((max - g) / (max - min))^(1 / p) is
+    /// uniform (chi-square), for the uniform draw and one skewed toward max.
+    #[test]
+    fn g_follows_its_power_law() {
+        for power in [1.0f32, 2.0] {
+            let spec = CloudSpec { g: [0.1, 0.9], g_power: power, ..Default::default() };
+            let bins = 20usize;
+            let mut counts = vec![0.0f64; bins];
+            let n = 20_000u64;
+            for c in 0..n {
+                let g = case_medium(&spec, c).g;
+                assert!((0.1..=0.9).contains(&g), "{g}");
+                let w = ((0.9 - g) / 0.8).max(0.0).powf(1.0 / power);
+                counts[((w * bins as f32) as usize).min(bins - 1)] += 1.0;
+            }
+            let chi = chi2_test(&counts, &vec![n as f64 / bins as f64; bins], 5.0);
+            assert!(chi.p_value > 1e-4, "g power {power}: {chi:?}");
+        }
+        // Skewed toward max: the mean is max - (max - min) / (p + 1).
+        let spec = CloudSpec { g: [0.0, 0.9], g_power: 2.0, ..Default::default() };
+        let mean = (0..20_000).map(|c| case_medium(&spec, c).g as f64).sum::<f64>() / 20_000.0;
+        // Standard deviation of g: 0.9 sqrt(1/5 - 1/9) = 0.268; 4 standard errors.
+        assert!((mean - 0.6).abs() < 4.0 * 0.268 / 20_000f64.sqrt(), "mean g {mean}");
     }
 }

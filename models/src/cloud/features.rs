@@ -41,7 +41,7 @@ pub const HEAD: usize = 3 + PHASE_TERMS;
 /// Phase terms ln(4 pi p_HG(g^n, mu)), n = 1 ..= PHASE_TERMS.
 pub const PHASE_TERMS: usize = 4;
 /// Length of the feature vector.
-pub const N_FEATURES: usize = HEAD + 2 * LEVELS * POINTS;
+pub const N_FEATURES: usize = HEAD + 2 * LEVELS * 3 * PLANE_FEATURES;
 /// h_0 = largest box extent / this.
 pub const BASE_DIVISIONS: f32 = 64.0;
 
@@ -55,6 +55,7 @@ pub fn feature_names() -> Vec<String> {
                 names.push(format!("{what}_{l}_{c}_centre"));
                 names.push(format!("{what}_{l}_{c}_ring"));
                 names.extend((0..7).map(|k| format!("{what}_{l}_{c}_dev{k}")));
+                names.push(format!("{what}_{l}_{c}_gradient"));
             }
         }
     }
@@ -156,10 +157,8 @@ impl CloudField {
         let mut raw = [0.0f32; 2 * LEVELS * POINTS];
         self.raw_stencil(&pts, &mut raw);
         let sin = (1.0 - cos * cos).max(0.0).sqrt();
-        for (o, r) in out[HEAD..].chunks_exact_mut(3 * PLANE).zip(raw.chunks_exact(3 * PLANE)) {
-            for (o, r) in o.chunks_exact_mut(PLANE).zip(r.chunks_exact(PLANE)) {
-                encode_plane(r, sin, o);
-            }
+        for (o, r) in out[HEAD..].chunks_exact_mut(PLANE_FEATURES).zip(raw.chunks_exact(PLANE)) {
+            encode_plane(r, sin, o);
         }
     }
 
@@ -184,23 +183,35 @@ impl CloudField {
 
 /// Points of one stencil plane (fixed c): 3 x 3.
 pub const PLANE: usize = 9;
+/// Features of one plane: centre, ring mean, seven scaled deviations, gradient.
+pub const PLANE_FEATURES: usize = 10;
 
 /// One plane's nine raw values (index (a + 1) + 3 (b + 1)) as the network sees them:
-/// the centre, the mean m of the ring of eight around it, and sin(theta) (v - m) for
-/// the first seven ring points (the eighth follows from the mean). The ring's layout
-/// depends on the azimuth of the query about the sun, which is undefined when the
-/// query points along the sun's axis; scaling what depends on it by sin(theta)
-/// makes the features continuous there (they tend to rotation-invariant ones), so a
-/// frontlit or backlit view is not a discontinuity the network has to learn around.
+/// the centre, the mean m of the ring of eight around it, sin(theta) (v - m) for
+/// the first seven ring points (the eighth follows from the mean), and the magnitude
+/// of the plane's gradient. The ring's layout depends on the azimuth of the query
+/// about the sun, which is undefined when the query points along the sun's axis;
+/// scaling what depends on it by sin(theta) makes the features continuous there (they
+/// tend to rotation-invariant ones), so a frontlit or backlit view is not a
+/// discontinuity the network has to learn around. That leaves an aligned view with
+/// the ring's mean alone, which cannot tell a point beside a thick body (a fringe)
+/// from one in a thin even layer; the gradient's magnitude can, and it does not
+/// depend on the azimuth: the root mean square of the central differences along the
+/// two axes and, divided by sqrt 2, along the two diagonals, which for a field
+/// linear over the plane is |grad| h at any azimuth.
 #[inline]
 pub fn encode_plane(raw: &[f32], sin_theta: f32, out: &mut [f32]) {
     const RING: [usize; 8] = [0, 1, 2, 3, 5, 6, 7, 8];
     let m = RING.iter().map(|&i| raw[i]).sum::<f32>() / 8.0;
     out[0] = raw[4];
     out[1] = m;
-    for (o, &i) in out[2..].iter_mut().zip(&RING[..7]) {
+    for (o, &i) in out[2..9].iter_mut().zip(&RING[..7]) {
         *o = sin_theta * (raw[i] - m);
     }
+    let (ax, ay) = (0.5 * (raw[5] - raw[3]), 0.5 * (raw[7] - raw[1]));
+    let (d1, d2) = (0.5 * (raw[8] - raw[0]), 0.5 * (raw[6] - raw[2]));
+    // The diagonals are sqrt 2 h long: (d1^2 + d2^2) / 2 is |grad|^2 h^2 too.
+    out[9] = (0.5 * (ax * ax + ay * ay + 0.5 * (d1 * d1 + d2 * d2))).sqrt();
 }
 
 #[cfg(test)]
@@ -290,7 +301,7 @@ mod tests {
             // The encoding keeps the raw values: centre, ring mean and the scaled
             // deviations give them back.
             let sin = (1.0 - cos * cos).sqrt();
-            for (plane, enc) in out[HEAD..].chunks_exact(PLANE).enumerate() {
+            for (plane, enc) in out[HEAD..].chunks_exact(PLANE_FEATURES).enumerate() {
                 let r = &raw[plane * PLANE..(plane + 1) * PLANE];
                 assert_eq!(enc[0], r[4]);
                 let ring = [0, 1, 2, 3, 5, 6, 7, 8];
@@ -358,6 +369,27 @@ mod tests {
             last = d;
         }
         assert!(last < 1e-3, "{last}");
+    }
+
+    /// The gradient feature of a plane sampled from a linear field is |grad| h
+    /// whatever the ring's azimuth about the plane's normal.
+    #[test]
+    fn plane_gradient_does_not_depend_on_the_azimuth() {
+        let (grad, h) = (glam::Vec2::new(0.7, -0.3), 1.3f32);
+        let mut out = [0.0f32; PLANE_FEATURES];
+        for k in 0..12 {
+            let phi = 0.37 * k as f32;
+            let (c, s) = (phi.cos(), phi.sin());
+            let raw: Vec<f32> = (0..PLANE)
+                .map(|i| {
+                    let (a, b) = ((i % 3) as f32 - 1.0, (i / 3) as f32 - 1.0);
+                    let p = glam::Vec2::new(c * a - s * b, s * a + c * b) * h;
+                    2.0 + grad.dot(p)
+                })
+                .collect();
+            encode_plane(&raw, 0.5, &mut out);
+            assert!((out[9] - grad.length() * h).abs() < 1e-5, "azimuth {phi}: {} vs {}", out[9], grad.length() * h);
+        }
     }
 
     /// Same inputs, same features, to the bit, and a field built for one sun answers

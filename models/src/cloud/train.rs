@@ -16,9 +16,14 @@ use crate::nn::fit::{
 };
 use crate::nn::mlp::Mlp;
 use crate::nn::optim::Optimizer;
+use crate::nn::refit::{RefitReport, refit_output_layer};
 use engine::Rng;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+
+fn two() -> f32 {
+    2.0
+}
 
 const FOUR_PI: f32 = 4.0 * std::f32::consts::PI;
 
@@ -62,6 +67,14 @@ pub struct CloudTrainConfig {
     /// Use at most this many training points (0: all), the first ones of each data
     /// set in order: the data-set-size study trains on growing prefixes.
     pub max_points: usize,
+    /// The relative loss's power ([`Loss::RelativeL2`]): 2 relative errors alike, 1
+    /// absolute errors over v.
+    #[serde(default = "two")]
+    pub loss_power: f32,
+    /// Gauss-Newton iterations of the output layer refitted on the whole training
+    /// split after the stochastic fit (0: none; [`crate::nn::refit`]).
+    #[serde(default)]
+    pub refit_output: usize,
 }
 
 impl Default for CloudTrainConfig {
@@ -82,6 +95,8 @@ impl Default for CloudTrainConfig {
             target: TargetColumn::Mean,
             eps: 2.5e-3,
             max_points: 0,
+            refit_output: 0,
+            loss_power: 2.0,
         }
     }
 }
@@ -89,6 +104,9 @@ impl Default for CloudTrainConfig {
 impl CloudTrainConfig {
     pub fn validate(&self) -> Result<(), TrainError> {
         self.schedule.validate(self.test_fraction)?;
+        if !(self.loss_power.is_finite() && (0.5..=2.0).contains(&self.loss_power)) {
+            return Err(TrainError::Setting { flag: "--loss-power", why: "must lie in 0.5 ..= 2".into() });
+        }
         if !(self.eps.is_finite() && self.eps > 0.0) {
             return Err(TrainError::Setting { flag: "--eps", why: "must be a positive number".into() });
         }
@@ -199,6 +217,9 @@ pub struct CloudReport {
     pub test: BiasReport,
     pub held_out: Option<BiasReport>,
     pub test_loss: f64,
+    /// The output layer's refit, if made.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refit: Option<RefitReport>,
     pub samples_per_second: f64,
     pub seconds: f64,
     pub history: Vec<EpochRecord>,
@@ -285,12 +306,21 @@ pub fn train(
         y_train: targets(&train_rows),
         x_test: standardize(&test_rows),
         y_test: targets(&test_rows),
-        loss: Loss::RelativeL2 { mean: target_mean, std: target_std, eps: cfg.eps },
+        loss: Loss::RelativeL2 { mean: target_mean, std: target_std, eps: cfg.eps, power: cfg.loss_power },
     };
     let paths = TrainPaths::new(out);
-    let identity = RunIdentity { config: cfg, sources: &data.sources, points: data.len() };
-    let Fitted { net, history, samples_per_second } =
+    // The refit follows the stochastic fit deterministically, so a checkpoint stands
+    // for any refit: a finished run resumed with another --refit-output refits only.
+    let fit_cfg = CloudTrainConfig { refit_output: 0, ..cfg.clone() };
+    let identity = RunIdentity { config: &fit_cfg, sources: &data.sources, points: data.len() };
+    let Fitted { mut net, history, samples_per_second } =
         fit(&fit_data, &cfg.schedule, &paths, resume, identity, observer)?;
+    let refit = if cfg.refit_output > 0 {
+        let t = (target_mean, target_std, cfg.eps, cfg.loss_power);
+        Some(refit_output_layer(&mut net, &fit_data.x_train, &fit_data.y_train, N_FEATURES, t, cfg.refit_output)?)
+    } else {
+        None
+    };
     let mut sidecar = CloudSidecar {
         format: MODEL_FORMAT.into(),
         format_version: MODEL_FORMAT_VERSION,
@@ -319,6 +349,7 @@ pub fn train(
         test,
         held_out,
         test_loss: history.last().map(|h| h.final_test_mse()).unwrap_or(f64::NAN),
+        refit,
         samples_per_second,
         seconds: started.elapsed().as_secs_f64(),
         history: history.clone(),

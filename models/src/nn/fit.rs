@@ -246,17 +246,22 @@ pub enum Loss {
     /// (v - y)^2 / (sg(v)^2 + eps) with sg the value without its gradient (as neural
     /// radiance caches train). The denominator does not depend on y, so the expected
     /// gradient vanishes where v = E[y]: noisy unbiased targets train an unbiased
-    /// model.
-    RelativeL2 { mean: f32, std: f32, eps: f32 },
+    /// model. With `power` p the denominator is (sg(v)^2 + eps)^(p / 2): 2 weighs
+    /// every point's relative error alike, 1 weighs absolute errors by 1 / v, nearer
+    /// to how an image sums them (bright points count more), still unbiased.
+    RelativeL2 { mean: f32, std: f32, eps: f32, power: f32 },
 }
 
 impl Loss {
     fn eval(&self, out: &Tensor, y: &Tensor) -> candle_core::Result<Tensor> {
         match *self {
             Loss::Mse => candle_nn::loss::mse(out, y),
-            Loss::RelativeL2 { mean, std, eps } => {
+            Loss::RelativeL2 { mean, std, eps, power } => {
                 let v = out.affine(std as f64, mean as f64)?.exp()?.affine(1.0, -1.0)?;
-                let den = v.detach().sqr()?.affine(1.0, eps as f64)?;
+                let mut den = v.detach().sqr()?.affine(1.0, eps as f64)?;
+                if power != 2.0 {
+                    den = den.powf(0.5 * power as f64)?;
+                }
                 (v - y)?.sqr()?.div(&den)?.mean_all()
             }
         }

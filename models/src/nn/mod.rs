@@ -7,6 +7,7 @@ pub mod fastmath;
 pub mod fit;
 pub mod mlp;
 pub mod optim;
+pub mod refit;
 
 pub use dense::Activation;
 pub use mlp::{Mlp, Scratch};
