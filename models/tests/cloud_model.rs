@@ -203,3 +203,70 @@ fn training_resumes_and_the_model_round_trips() {
         assert_eq!(v, loaded.predict_features(&feat, &mut s1));
     }
 }
+
+/// Distillation: the training targets are exactly 4 pi times the mean of the teachers'
+/// predictions at each row, the same for any thread count; the path-traced targets
+/// stay for the reports; the teachers are part of the run's identity (a resume with
+/// another teacher is refused, with the same one it finishes to the weights of a
+/// straight run) and are named in the sidecar.
+#[test]
+fn distillation_trains_on_the_teachers_mean() {
+    let s = CloudSpec { points: 96, points_per_cloud: 8, ..spec() };
+    let root = tempfile::tempdir().unwrap();
+    let data_dir = root.path().join("data");
+    run(&s, Shard::ALL, &data_dir, 2, &AtomicBool::new(false)).unwrap();
+    let data = CloudTrainData::load(std::slice::from_ref(&data_dir)).unwrap();
+    let mut cfg = CloudTrainConfig { test_fraction: 0.25, refit_output: 3, ..Default::default() };
+    (cfg.schedule.hidden, cfg.schedule.epochs, cfg.schedule.batch) = (vec![16, 8], 4, 16);
+    let teacher = |seed: u64, name: &str| {
+        let c =
+            CloudTrainConfig { schedule: models::nn::fit::FitSchedule { seed, ..cfg.schedule.clone() }, ..cfg.clone() };
+        train(&data, None, &c, &root.path().join(name), false, "test", "test", &Quiet).unwrap().0
+    };
+    let (t1, t2) = (teacher(1, "t1"), teacher(2, "t2"));
+    let distilled = |threads: usize, teachers: &[&CloudModel], names: &[&str]| {
+        let mut d = CloudTrainData::load(std::slice::from_ref(&data_dir)).unwrap();
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| d.distill_from(teachers, names.iter().map(|n| n.to_string()).collect())).unwrap();
+        d
+    };
+    let mut d1 = distilled(1, &[&t1, &t2], &["t1", "t2"]);
+    let d3 = distilled(3, &[&t1, &t2], &["t1", "t2"]);
+    let y = d1.teacher_targets.clone().unwrap();
+    assert_eq!(Some(&y), d3.teacher_targets.as_ref(), "teacher targets depend on the thread count");
+    let (mut s1, mut s2) = (t1.mlp.scratch(), t2.mlp.scratch());
+    let four_pi = 4.0 * std::f32::consts::PI;
+    for (i, row) in data.features.chunks_exact(N_FEATURES).enumerate() {
+        let want = (t1.predict_features(row, &mut s1) as f64 + t2.predict_features(row, &mut s2) as f64) / 2.0;
+        assert_eq!(y[i], four_pi * want as f32, "row {i}");
+    }
+    assert_eq!(d1.targets, data.targets, "the path-traced targets must stay for the reports");
+    assert!(d1.distill_from(&[], vec![]).is_err(), "no teacher must be refused");
+
+    // Trained on them, stopped and resumed with another teacher: refused; with the
+    // same: the straight run's weights. The sidecar names the teachers.
+    let (_, report) = train(&d1, None, &cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
+    assert!(report.refit.is_some() && report.test.bias.is_finite());
+    let stop = StopAfterEpochs::new(2);
+    assert!(train(&d1, None, &cfg, &root.path().join("b"), false, "test", "test", &stop).is_err());
+    let other = distilled(2, &[&t1], &["t1"]);
+    let e = train(&other, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).err().unwrap();
+    assert!(e.to_string().contains("other settings or data"), "{e}");
+    train(&d1, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
+    assert_eq!(
+        std::fs::read(root.path().join("a.safetensors")).unwrap(),
+        std::fs::read(root.path().join("b.safetensors")).unwrap(),
+        "resumed distillation differs"
+    );
+    let side: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(root.path().join("a.json")).unwrap()).unwrap();
+    assert_eq!(side["training"]["teachers"], serde_json::json!(["t1", "t2"]));
+    // Trained on the teachers' mean, the student differs from a run on the paths.
+    let (plain, _) = train(&data, None, &cfg, &root.path().join("c"), false, "test", "test", &Quiet).unwrap();
+    let student = CloudModel::load(&root.path().join("a.safetensors")).unwrap();
+    let row = &data.features[..N_FEATURES];
+    assert_ne!(
+        student.predict_features(row, &mut student.mlp.scratch()),
+        plain.predict_features(row, &mut plain.mlp.scratch())
+    );
+}

@@ -371,4 +371,40 @@ fn cloud_points_reports_a_models_bias_on_a_fixed_lighting() {
     // A bad sun is refused, naming the flag.
     let e = nimbus(&["datagen", "cloud", "--points", "8", "--sun", "0,0", "--out", d]).unwrap_err();
     assert!(e.to_string().contains("--sun"), "{e}");
+
+    // Distillation from the shipped model: the sidecar names the teacher by its
+    // fingerprint; a teacher that does not exist is refused, naming the flag.
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("../assets/models/cloud.safetensors");
+    let out = guard.path().join("student");
+    let train = |teacher: &str| {
+        nimbus(&[
+            "train",
+            "cloud",
+            d,
+            "--teacher",
+            teacher,
+            "--epochs",
+            "1",
+            "--hidden",
+            "8",
+            "--batch",
+            "8",
+            "--refit-output",
+            "2",
+            "--quiet",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    train(shipped.to_str().unwrap()).unwrap();
+    let side: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.with_extension("json")).unwrap()).unwrap();
+    let fp = models::fingerprint::model_file_fingerprint(&shipped).unwrap();
+    assert_eq!(side["training"]["teachers"], serde_json::json!([format!("{fp:016x}")]));
+    let e = train(guard.path().join("none.safetensors").to_str().unwrap()).unwrap_err();
+    assert!(format!("{e:#}").contains("--teacher"), "{e:#}");
+    let o = out.to_str().unwrap();
+    let args = ["train", "cloud", d, "--teacher", shipped.to_str().unwrap(), "--target", "one-path", "--out", o];
+    let e = nimbus(&args).unwrap_err();
+    assert!(e.to_string().contains("--teacher"), "{e}");
 }

@@ -32,6 +32,11 @@ pub struct TrainCloudArgs {
     /// trained on).
     #[arg(long)]
     pub held_out: Option<PathBuf>,
+    /// Distil: train on the mean of these cloud-aware models' predictions at the data's
+    /// features instead of the path-traced targets (comma separated .safetensors; the
+    /// test and held-out reports keep the path-traced targets).
+    #[arg(long, value_delimiter = ',')]
+    pub teacher: Vec<PathBuf>,
     /// Output prefix: PREFIX.safetensors, .json, .loss.csv, .loss.png, .checkpoint/.
     #[arg(long)]
     pub out: PathBuf,
@@ -108,7 +113,28 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
     cfg.validate()?;
     let threads = init_threads(args.run.threads)?;
     let t = std::time::Instant::now();
-    let data = CloudTrainData::load(&args.data)?;
+    let mut data = CloudTrainData::load(&args.data)?;
+    if !args.teacher.is_empty() {
+        if cfg.target != TargetColumn::Mean {
+            bail!("--teacher replaces the path-traced targets: --target {} does not apply", args.target);
+        }
+        let mut teachers = vec![];
+        let mut fingerprints = vec![];
+        for p in &args.teacher {
+            teachers
+                .push(models::cloud::model::CloudModel::load(p).with_context(|| format!("--teacher {}", p.display()))?);
+            let f =
+                models::fingerprint::model_file_fingerprint(p).with_context(|| format!("--teacher {}", p.display()))?;
+            fingerprints.push(format!("{f:016x}"));
+        }
+        let t = std::time::Instant::now();
+        data.distill_from(&teachers.iter().collect::<Vec<_>>(), fingerprints)?;
+        eprintln!(
+            "targets: the mean of {} teachers' predictions, in {:.1} s",
+            teachers.len(),
+            t.elapsed().as_secs_f64()
+        );
+    }
     let held_out = match &args.held_out {
         Some(d) => {
             let ds = models::cloud::datagen::CloudDataset::load(d)?;

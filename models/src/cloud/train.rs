@@ -4,7 +4,9 @@
 //! per point, or one) train an unbiased model. The test split holds out whole clouds;
 //! the report gives the relative bias on them (sum of predictions over sum of
 //! targets, the quantity an image's bias follows), overall and per cloud, and the same
-//! on a held-out data set of clouds no training set draws.
+//! on a held-out data set of clouds no training set draws. With teachers
+//! ([`CloudTrainData::distill_from`]) the network is fitted to the mean of several
+//! trained networks' predictions instead of the paths (distillation).
 
 use super::datagen::CloudDataset;
 use super::features::{N_FEATURES, feature_names};
@@ -122,6 +124,11 @@ pub struct CloudTrainData {
     /// Which cloud each row comes from: (data set index, chunk).
     pub clouds: Vec<(u32, u64)>,
     pub sources: Vec<String>,
+    /// With teachers ([`CloudTrainData::distill_from`]): 4 pi times the mean of their
+    /// predictions per row, the training target in place of the path-traced mean.
+    pub teacher_targets: Option<Vec<f32>>,
+    /// The teachers' fingerprints (part of the run's identity).
+    pub teachers: Vec<String>,
 }
 
 impl CloudTrainData {
@@ -129,7 +136,14 @@ impl CloudTrainData {
         if dirs.is_empty() {
             return Err(TrainError::Data("no data set given".into()));
         }
-        let mut out = CloudTrainData { features: vec![], targets: vec![], clouds: vec![], sources: vec![] };
+        let mut out = CloudTrainData {
+            features: vec![],
+            targets: vec![],
+            clouds: vec![],
+            sources: vec![],
+            teacher_targets: None,
+            teachers: vec![],
+        };
         for (k, d) in dirs.iter().enumerate() {
             let ds = CloudDataset::load(d).map_err(|e| TrainError::Data(e.to_string()))?;
             if ds.manifest.settings.held_out {
@@ -156,6 +170,34 @@ impl CloudTrainData {
 
     fn row(&self, i: usize) -> &[f32] {
         &self.features[i * N_FEATURES..(i + 1) * N_FEATURES]
+    }
+
+    /// Distillation: the training targets become the mean of `teachers`' predictions
+    /// at every row's features (noise-free, where a path-traced mean of a few paths has
+    /// a relative standard deviation near 1 at strongly forward-scattering views).
+    /// Networks trained on the same data disagree configuration by configuration; their
+    /// mean is closer to the truth than any of them, and a network fitted to it inherits
+    /// that at its own cost per prediction. The test split and the held-out report keep
+    /// the path-traced targets. `fingerprints` name the teachers in the run's identity,
+    /// so a resume with other teachers is refused.
+    pub fn distill_from(&mut self, teachers: &[&CloudModel], fingerprints: Vec<String>) -> Result<(), TrainError> {
+        use rayon::prelude::*;
+        if teachers.is_empty() {
+            return Err(TrainError::Setting { flag: "--teacher", why: "names no model".into() });
+        }
+        const ROWS: usize = 4096;
+        let mut y = vec![0.0f32; self.len()];
+        y.par_chunks_mut(ROWS).enumerate().for_each(|(c, out)| {
+            let mut scratch: Vec<_> = teachers.iter().map(|t| t.mlp.scratch()).collect();
+            for (j, v) in out.iter_mut().enumerate() {
+                let row = self.row(c * ROWS + j);
+                let sum: f64 = teachers.iter().zip(&mut scratch).map(|(t, s)| t.predict_features(row, s) as f64).sum();
+                *v = FOUR_PI * (sum / teachers.len() as f64) as f32;
+            }
+        });
+        self.teacher_targets = Some(y);
+        self.teachers = fingerprints;
+        Ok(())
     }
 }
 
@@ -279,7 +321,11 @@ pub fn train(
             mean[k] += *v as f64;
             sq[k] += (*v as f64).powi(2);
         }
-        let y = (FOUR_PI * data.targets[i * 5 + col]).ln_1p() as f64;
+        let t = match &data.teacher_targets {
+            Some(t) => t[i],
+            None => FOUR_PI * data.targets[i * 5 + col],
+        };
+        let y = t.ln_1p() as f64;
         ym += y;
         ysq += y * y;
     }
@@ -300,10 +346,14 @@ pub fn train(
     };
     // The loss compares 4 pi L_ms (the linear value the output stands for).
     let targets = |rows: &[usize]| rows.iter().map(|&i| FOUR_PI * data.targets[i * 5 + col]).collect::<Vec<f32>>();
+    let y_train = match &data.teacher_targets {
+        Some(t) => train_rows.iter().map(|&i| t[i]).collect(),
+        None => targets(&train_rows),
+    };
     let fit_data = FitData {
         n_f: N_FEATURES,
         x_train: standardize(&train_rows),
-        y_train: targets(&train_rows),
+        y_train,
         x_test: standardize(&test_rows),
         y_test: targets(&test_rows),
         loss: Loss::RelativeL2 { mean: target_mean, std: target_std, eps: cfg.eps, power: cfg.loss_power },
@@ -312,7 +362,9 @@ pub fn train(
     // The refit follows the stochastic fit deterministically, so a checkpoint stands
     // for any refit: a finished run resumed with another --refit-output refits only.
     let fit_cfg = CloudTrainConfig { refit_output: 0, ..cfg.clone() };
-    let identity = RunIdentity { config: &fit_cfg, sources: &data.sources, points: data.len() };
+    let sources: Vec<String> =
+        data.sources.iter().cloned().chain(data.teachers.iter().map(|t| format!("teacher {t}"))).collect();
+    let identity = RunIdentity { config: &fit_cfg, sources: &sources, points: data.len() };
     let Fitted { mut net, history, samples_per_second } =
         fit(&fit_data, &cfg.schedule, &paths, resume, identity, observer)?;
     let refit = if cfg.refit_output > 0 {
@@ -358,6 +410,7 @@ pub fn train(
         "command": command,
         "code_version": code_version,
         "data": data.sources,
+        "teachers": data.teachers,
         "points": data.len(),
         "config": cfg,
         "report": report,
