@@ -281,7 +281,7 @@ pub struct RenderDesc {
     #[serde(skip_serializing_if = "is_learned")]
     pub preview: String,
     /// Nodes per axis of the learned preview's multiple-scattering lattice, 2 ..= 128.
-    /// Default 48.
+    /// Default 128 (each node evaluated when the preview first reads it).
     #[serde(skip_serializing_if = "is_default_preview_nodes")]
     pub preview_nodes: u32,
     /// The octave approximation: octaves N (terms 0 .. N-1, 1 ..= 9, default 3) and
@@ -318,7 +318,10 @@ fn is_half(v: &f32) -> bool {
 }
 
 /// Nodes per axis of the learned preview's lattice by default.
-pub const DEFAULT_PREVIEW_NODES: u32 = 48;
+/// As fine as a 128^3 grid: the lattice is lazy, so the nodes cost what the
+/// preview's marches read, and 48 nodes measured 2 - 13 points of relative RMSE
+/// worse than 128 at backlit views, where the image is the bright fringe.
+pub const DEFAULT_PREVIEW_NODES: u32 = 128;
 
 fn is_default_extension_samples(n: &u32) -> bool {
     *n == engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES
@@ -851,7 +854,7 @@ impl SceneFile {
                 Ok(predictor) => MultipleScattering::Lattice(Arc::new(Preview::learned_lattice(
                     scene,
                     &field,
-                    predictor.as_ref(),
+                    predictor,
                     scene.camera.position(),
                     self.render.preview_nodes,
                 ))),

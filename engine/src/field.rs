@@ -26,6 +26,8 @@ use crate::light::Sun;
 use crate::medium::Medium;
 use glam::{UVec3, Vec3};
 use rayon::prelude::*;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, Ordering};
 
 /// The nodes of a lattice over a medium's support: at most `max_nodes` per axis and
 /// at most one per grid voxel plus one; returns (nodes per axis, spacing).
@@ -112,14 +114,30 @@ pub fn optical_depth_sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing:
     tau
 }
 
+/// A node's value as a function of its position (a lazily filled lattice's source).
+pub type NodeSource = Arc<dyn Fn(Vec3) -> f32 + Send + Sync>;
+
+/// Bits of a node not evaluated yet (a NaN no source returns: sources' values are
+/// stored as they come, and a NaN from one is stored as 0).
+const UNSET: u32 = u32::MAX;
+
 /// One value per node of a lattice over a box, read by trilinear interpolation.
-#[derive(Clone)]
+///
+/// A lattice is either filled up front ([`ScalarLattice::new`]) or lazily
+/// ([`ScalarLattice::lazy`]): a node is evaluated by the source the first time a
+/// lookup reads it and kept. Where the lookups concentrate (the camera-facing shell of
+/// a dense cloud, for the preview) a fine lattice then costs the nodes that are read,
+/// not all of them. Two threads reading a new node at once may both evaluate it; the
+/// source is a function of the position, so they store the same bits, and the values
+/// read do not depend on the thread count or the order of the lookups.
 pub struct ScalarLattice {
     n: UVec3,
     origin: Vec3,
+    spacing: Vec3,
     inv_spacing: Vec3,
-    /// Node index x + n.x (y + n.y z).
-    data: Vec<f32>,
+    /// f32 bits per node (UNSET until evaluated), index x + n.x (y + n.y z).
+    data: Vec<AtomicU32>,
+    source: Option<NodeSource>,
 }
 
 impl ScalarLattice {
@@ -127,7 +145,16 @@ impl ScalarLattice {
     /// node order.
     pub fn new(n: UVec3, origin: Vec3, spacing: Vec3, data: Vec<f32>) -> Self {
         assert!(n.min_element() >= 2 && data.len() == (n.x * n.y * n.z) as usize, "a lattice of {n} nodes");
-        ScalarLattice { n, origin, inv_spacing: spacing.recip(), data }
+        let data = data.into_iter().map(|v| AtomicU32::new(v.to_bits())).collect();
+        ScalarLattice { n, origin, spacing, inv_spacing: spacing.recip(), data, source: None }
+    }
+
+    /// `n` nodes per axis (each >= 2) from `origin`, `spacing` apart, each evaluated by
+    /// `source` at its position when a lookup first reads it.
+    pub fn lazy(n: UVec3, origin: Vec3, spacing: Vec3, source: NodeSource) -> Self {
+        assert!(n.min_element() >= 2, "a lattice of {n} nodes");
+        let data = (0..n.x * n.y * n.z).map(|_| AtomicU32::new(UNSET)).collect();
+        ScalarLattice { n, origin, spacing, inv_spacing: spacing.recip(), data, source: Some(source) }
     }
 
     /// Nodes per axis.
@@ -135,14 +162,48 @@ impl ScalarLattice {
         self.n
     }
 
+    /// Nodes evaluated so far (all of them for a lattice filled up front).
+    pub fn evaluated(&self) -> usize {
+        self.data.iter().filter(|v| v.load(Ordering::Relaxed) != UNSET).count()
+    }
+
     pub fn memory_bytes(&self) -> usize {
         self.data.len() * 4
+    }
+
+    /// The value of node `i`, evaluated now if it was not.
+    #[inline]
+    fn node(&self, i: usize) -> f32 {
+        let bits = self.data[i].load(Ordering::Relaxed);
+        if bits != UNSET {
+            return f32::from_bits(bits);
+        }
+        let Some(source) = &self.source else { return 0.0 };
+        let (x, y, z) = (i as u32 % self.n.x, (i as u32 / self.n.x) % self.n.y, i as u32 / (self.n.x * self.n.y));
+        let v = source(self.origin + UVec3::new(x, y, z).as_vec3() * self.spacing);
+        let v = if v.is_nan() { 0.0 } else { v };
+        self.data[i].store(v.to_bits(), Ordering::Relaxed);
+        v
     }
 
     /// Trilinear value at `x` (positions outside the lattice are clamped to it).
     #[inline]
     pub fn lookup(&self, x: Vec3) -> f32 {
-        trilinear(&self.data, self.n, (x - self.origin) * self.inv_spacing)
+        let n = self.n;
+        let q = ((x - self.origin) * self.inv_spacing).clamp(Vec3::ZERO, (n - UVec3::ONE).as_vec3());
+        // q is clamped to >= 0, so truncation is floor.
+        let i0 = q.as_uvec3().min(n - UVec3::splat(2));
+        let f = q - i0.as_vec3();
+        let (sx, sy) = (1usize, n.x as usize);
+        let sz = sy * n.y as usize;
+        let base = i0.x as usize + sy * i0.y as usize + sz * i0.z as usize;
+        let d = |i: usize| self.node(i);
+        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+        let c00 = lerp(d(base), d(base + sx), f.x);
+        let c10 = lerp(d(base + sy), d(base + sy + sx), f.x);
+        let c01 = lerp(d(base + sz), d(base + sz + sx), f.x);
+        let c11 = lerp(d(base + sz + sy), d(base + sz + sy + sx), f.x);
+        lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z)
     }
 }
 
@@ -255,7 +316,8 @@ impl SunTransmittance {
 /// Lattices print their size, not their values.
 impl std::fmt::Debug for ScalarLattice {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "ScalarLattice({} nodes, {} bytes)", self.n, self.memory_bytes())
+        let lazy = if self.source.is_some() { ", lazy" } else { "" };
+        write!(f, "ScalarLattice({} nodes, {} bytes{lazy})", self.n, self.memory_bytes())
     }
 }
 
@@ -380,5 +442,56 @@ mod tests {
         }
         let far = origin + Vec3::splat(100.0);
         assert!((l.lookup(far) - f(origin + (n - 1).as_vec3() * spacing)).abs() < 1e-4);
+    }
+
+    /// A lazy lattice reads the same values as one filled up front, bit for bit, with
+    /// lookups from any number of threads in any order; it evaluates only the nodes
+    /// its lookups read (the 8 corners of each cell touched), each once when read from
+    /// one thread, and stores a source's NaN as 0.
+    #[test]
+    fn lazy_lattice_equals_the_filled_one_and_evaluates_what_it_reads() {
+        let n = UVec3::new(9, 7, 8);
+        let (origin, spacing) = (Vec3::new(-1.0, 0.5, 2.0), Vec3::new(0.5, 0.25, 1.0));
+        let f = |p: Vec3| (3.0 * p.x).sin() * p.y + (p.z * p.x).cos();
+        let node = |i: u32| origin + UVec3::new(i % n.x, (i / n.x) % n.y, i / (n.x * n.y)).as_vec3() * spacing;
+        let filled = ScalarLattice::new(n, origin, spacing, (0..n.x * n.y * n.z).map(|i| f(node(i))).collect());
+        let calls = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let lazy = |calls: Arc<std::sync::atomic::AtomicUsize>| {
+            ScalarLattice::lazy(
+                n,
+                origin,
+                spacing,
+                Arc::new(move |p| {
+                    calls.fetch_add(1, Ordering::Relaxed);
+                    f(p)
+                }),
+            )
+        };
+        let mut rng = crate::rng::Rng::new(5, 0, 0);
+        // Points in the lower half of the box along x only.
+        let points: Vec<Vec3> = (0..2000)
+            .map(|_| {
+                let u = Vec3::new(0.45 * rng.uniform(), rng.uniform(), rng.uniform());
+                origin + u * (n - 1).as_vec3() * spacing
+            })
+            .collect();
+        let one = lazy(calls.clone());
+        assert_eq!(one.evaluated(), 0);
+        for p in &points {
+            assert_eq!(one.lookup(*p).to_bits(), filled.lookup(*p).to_bits(), "{p}");
+        }
+        // Cells with x index 0 .. 3 are read: nodes with x index 0 .. 4, and no more.
+        let read = 5 * n.y as usize * n.z as usize;
+        assert!(one.evaluated() <= read && one.evaluated() > read / 2, "{} of {read}", one.evaluated());
+        assert_eq!(calls.load(Ordering::Relaxed), one.evaluated(), "a node evaluated twice from one thread");
+        // From 3 threads, in reverse order: the same values.
+        let three = lazy(Arc::new(std::sync::atomic::AtomicUsize::new(0)));
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        let got: Vec<u32> = pool.install(|| points.par_iter().rev().map(|p| three.lookup(*p).to_bits()).collect());
+        let want: Vec<u32> = points.iter().rev().map(|p| filled.lookup(*p).to_bits()).collect();
+        assert_eq!(got, want);
+        // A NaN from the source is stored as 0.
+        let nan = ScalarLattice::lazy(UVec3::splat(2), Vec3::ZERO, Vec3::ONE, Arc::new(|_| f32::NAN));
+        assert_eq!(nan.lookup(Vec3::splat(0.5)), 0.0);
     }
 }

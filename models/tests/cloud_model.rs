@@ -127,8 +127,17 @@ fn generator_is_deterministic_resumable_and_shardable() {
     assert!(e.to_string().contains("held-out"), "{e}");
 }
 
-#[test]
-fn training_resumes_and_the_model_round_trips() {
+/// A small training set (96 points of 12 clouds) in a fresh directory, and the
+/// configuration of a small network for it.
+struct Small {
+    s: CloudSpec,
+    root: tempfile::TempDir,
+    data_dir: PathBuf,
+    data: CloudTrainData,
+    cfg: CloudTrainConfig,
+}
+
+fn small_training_set() -> Small {
     let s = CloudSpec { points: 96, points_per_cloud: 8, ..spec() };
     let root = tempfile::tempdir().unwrap();
     let data_dir = root.path().join("data");
@@ -136,6 +145,12 @@ fn training_resumes_and_the_model_round_trips() {
     let data = CloudTrainData::load(std::slice::from_ref(&data_dir)).unwrap();
     let mut cfg = CloudTrainConfig { test_fraction: 0.25, ..Default::default() };
     (cfg.schedule.hidden, cfg.schedule.epochs, cfg.schedule.batch) = (vec![16, 8], 4, 16);
+    Small { s, root, data_dir, data, cfg }
+}
+
+#[test]
+fn training_resumes_and_the_model_round_trips() {
+    let Small { s, root, data, cfg, .. } = small_training_set();
     let (full, report) = train(&data, None, &cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
     // The test split holds out whole clouds: 3 of 12.
     assert_eq!(report.test.clouds, 3);
@@ -211,13 +226,8 @@ fn training_resumes_and_the_model_round_trips() {
 /// straight run) and are named in the sidecar.
 #[test]
 fn distillation_trains_on_the_teachers_mean() {
-    let s = CloudSpec { points: 96, points_per_cloud: 8, ..spec() };
-    let root = tempfile::tempdir().unwrap();
-    let data_dir = root.path().join("data");
-    run(&s, Shard::ALL, &data_dir, 2, &AtomicBool::new(false)).unwrap();
-    let data = CloudTrainData::load(std::slice::from_ref(&data_dir)).unwrap();
-    let mut cfg = CloudTrainConfig { test_fraction: 0.25, refit_output: 3, ..Default::default() };
-    (cfg.schedule.hidden, cfg.schedule.epochs, cfg.schedule.batch) = (vec![16, 8], 4, 16);
+    let Small { root, data_dir, data, mut cfg, .. } = small_training_set();
+    cfg.refit_output = 3;
     let teacher = |seed: u64, name: &str| {
         let c =
             CloudTrainConfig { schedule: models::nn::fit::FitSchedule { seed, ..cfg.schedule.clone() }, ..cfg.clone() };

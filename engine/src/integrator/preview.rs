@@ -37,7 +37,7 @@
 //! half the smallest voxel edge, [`Preview::default_step`]).
 
 use super::base::PathSample;
-use crate::field::{ScalarLattice, SunTransmittance, lattice_over};
+use crate::field::{NodeSource, ScalarLattice, SunTransmittance, lattice_over};
 use crate::grid::Bounds3;
 use crate::medium::Medium;
 use crate::phase::PhaseFunction;
@@ -47,6 +47,11 @@ use crate::scene::Scene;
 use glam::{UVec3, Vec3};
 use rayon::prelude::*;
 use std::sync::Arc;
+
+/// Learned lattices of at most this many nodes are filled up front (the window's
+/// first look: a few milliseconds, and its passes then only read); larger ones are
+/// filled as the marches read them.
+pub const EAGER_LATTICE_NODES: u32 = 32 * 32 * 32;
 
 /// Camera transmittance below which a march ends (what is left is invisible).
 pub const MIN_TRANSMITTANCE: f32 = 1e-4;
@@ -131,41 +136,50 @@ impl Preview {
 
     /// L_ms for a unit sun from `predictor` at the nodes of a lattice over the
     /// medium (at most `max_nodes` per axis), with omega the direction from each node
-    /// toward `camera`. Nodes whose lattice cells are all empty are left at 0 (their
-    /// value only ever multiplies a zero density). A predictor of total in-scattered radiance
-    /// gets the single scattering of `sun` subtracted (clamped at 0).
+    /// toward `camera`. Above [`EAGER_LATTICE_NODES`] each node is evaluated when a
+    /// lookup first reads it (a lazy [`ScalarLattice`]: a march reads the nodes around
+    /// the camera-facing part of the cloud it reaches before its transmittance runs
+    /// out, so a lattice as fine as the grid costs those nodes, not the whole box). Nodes whose lattice cells are
+    /// all empty are 0 (their value only ever multiplies a zero density). A predictor
+    /// of total in-scattered radiance gets the single scattering of `sun` subtracted
+    /// (clamped at 0).
     pub fn learned_lattice(
         scene: &Scene,
-        sun: &SunTransmittance,
-        predictor: &dyn InScatterPredictor,
+        sun: &Arc<SunTransmittance>,
+        predictor: Arc<dyn InScatterPredictor>,
         camera: Vec3,
         max_nodes: u32,
     ) -> ScalarLattice {
-        let medium = &scene.medium;
-        let (n, spacing) = lattice_over(medium, max_nodes);
+        let medium = scene.medium.clone();
+        let (n, spacing) = lattice_over(&medium, max_nodes);
         let origin = medium.grid().support_bounds().min;
-        let nodes = (n.x * n.y * n.z) as usize;
-        let Some(light) = scene.sun.as_ref() else {
-            return ScalarLattice::new(n, origin, spacing, vec![0.0; nodes]);
+        let Some(light) = scene.sun else {
+            return ScalarLattice::new(n, origin, spacing, vec![0.0; (n.x * n.y * n.z) as usize]);
         };
         let total = predictor.predicts_single_scattering();
-        let data = (0..nodes as u32)
-            .into_par_iter()
-            .map(|i| {
-                let (x, y, z) = (i % n.x, (i / n.x) % n.y, i / (n.x * n.y));
-                let p = origin + UVec3::new(x, y, z).as_vec3() * spacing;
-                // A node is read wherever its lattice cells are: it is needed unless
-                // the medium is empty across all of them.
-                if medium.majorant().max_in(Bounds3::new(p - spacing, p + spacing)) <= 0.0 {
-                    return 0.0;
-                }
-                let Some(omega) = (camera - p).try_normalize() else { return 0.0 };
-                let li = predictor.predict(medium, light, p, omega);
-                let ms = if total { li - medium.phase().eval(omega, sun.to_sun()) * sun.at(p) } else { li };
-                if ms.is_finite() { ms.max(0.0) } else { 0.0 }
-            })
-            .collect();
-        ScalarLattice::new(n, origin, spacing, data)
+        let sun = sun.clone();
+        let source: NodeSource = Arc::new(move |p: Vec3| {
+            // A node is read wherever its lattice cells are: it is needed unless
+            // the medium is empty across all of them.
+            if medium.majorant().max_in(Bounds3::new(p - spacing, p + spacing)) <= 0.0 {
+                return 0.0;
+            }
+            let Some(omega) = (camera - p).try_normalize() else { return 0.0 };
+            let li = predictor.predict(&medium, &light, p, omega);
+            let ms = if total { li - medium.phase().eval(omega, sun.to_sun()) * sun.at(p) } else { li };
+            if ms.is_finite() { ms.max(0.0) } else { 0.0 }
+        });
+        let nodes = n.x * n.y * n.z;
+        if nodes <= EAGER_LATTICE_NODES {
+            // Few nodes: all of them up front, in parallel, so the passes only read.
+            let data = (0..nodes)
+                .into_par_iter()
+                .map(|i| source(origin + UVec3::new(i % n.x, (i / n.x) % n.y, i / (n.x * n.y)).as_vec3() * spacing))
+                .collect();
+            ScalarLattice::new(n, origin, spacing, data)
+        } else {
+            ScalarLattice::lazy(n, origin, spacing, source)
+        }
     }
 
     /// One sample of the radiance arriving at `o` from direction `-d`, split into the

@@ -99,7 +99,7 @@ impl PreviewJob<'_> {
             let lattice = Preview::learned_lattice(
                 self.scene,
                 &field,
-                bound.as_ref(),
+                bound,
                 self.scene.camera.position(),
                 self.file.render.preview_nodes,
             );
@@ -123,9 +123,15 @@ impl PreviewJob<'_> {
         ])
     }
 
-    /// The cache files of `technique`'s cell: (json, npy).
+    /// The cache files of `technique`'s cell: (json, npy). The learned preview's name
+    /// carries its lattice's nodes per axis (another lattice, another image).
     fn cache_paths(&self, technique: &str) -> (std::path::PathBuf, std::path::PathBuf) {
-        let tag = format!("{}_preview_{}_spp{}", self.key, technique.replace(' ', "_"), self.spp);
+        let lattice = if technique == TECHNIQUES[0] {
+            format!("_nodes{}", self.file.render.preview_nodes)
+        } else {
+            String::new()
+        };
+        let tag = format!("{}_preview_{}{lattice}_spp{}", self.key, technique.replace(' ', "_"), self.spp);
         (self.cache.join(format!("{tag}.json")), self.cache.join(format!("{tag}.npy")))
     }
 
