@@ -139,10 +139,10 @@ impl Preview {
     /// toward `camera`. Above [`EAGER_LATTICE_NODES`] each node is evaluated when a
     /// lookup first reads it (a lazy [`ScalarLattice`]: a march reads the nodes around
     /// the camera-facing part of the cloud it reaches before its transmittance runs
-    /// out, so a lattice as fine as the grid costs those nodes, not the whole box). Nodes whose lattice cells are
-    /// all empty are 0 (their value only ever multiplies a zero density). A predictor
-    /// of total in-scattered radiance gets the single scattering of `sun` subtracted
-    /// (clamped at 0).
+    /// out, so a lattice as fine as the grid costs those nodes, not the whole box).
+    /// Nodes whose lattice cells are all empty are 0 (their value only ever multiplies
+    /// a zero density). A predictor of total in-scattered radiance gets the single
+    /// scattering of `sun` subtracted (clamped at 0).
     pub fn learned_lattice(
         scene: &Scene,
         sun: &Arc<SunTransmittance>,
