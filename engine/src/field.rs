@@ -171,6 +171,25 @@ impl ScalarLattice {
         self.data.len() * 4
     }
 
+    /// `n` nodes per axis (each >= 2) from `origin`, `spacing` apart, every node
+    /// evaluated by `source` now, in parallel (the result does not depend on the
+    /// thread count).
+    pub fn filled(n: UVec3, origin: Vec3, spacing: Vec3, source: NodeSource) -> Self {
+        let l = Self::lazy(n, origin, spacing, source);
+        (0..l.data.len()).into_par_iter().for_each(|i| {
+            l.node(i);
+        });
+        ScalarLattice { source: None, ..l }
+    }
+
+    /// The position of node `i`.
+    #[inline]
+    fn position(&self, i: usize) -> Vec3 {
+        let n = self.n;
+        let i = i as u32;
+        self.origin + UVec3::new(i % n.x, (i / n.x) % n.y, i / (n.x * n.y)).as_vec3() * self.spacing
+    }
+
     /// The value of node `i`, evaluated now if it was not.
     #[inline]
     fn node(&self, i: usize) -> f32 {
@@ -179,8 +198,7 @@ impl ScalarLattice {
             return f32::from_bits(bits);
         }
         let Some(source) = &self.source else { return 0.0 };
-        let (x, y, z) = (i as u32 % self.n.x, (i as u32 / self.n.x) % self.n.y, i as u32 / (self.n.x * self.n.y));
-        let v = source(self.origin + UVec3::new(x, y, z).as_vec3() * self.spacing);
+        let v = source(self.position(i));
         let v = if v.is_nan() { 0.0 } else { v };
         self.data[i].store(v.to_bits(), Ordering::Relaxed);
         v
@@ -189,21 +207,7 @@ impl ScalarLattice {
     /// Trilinear value at `x` (positions outside the lattice are clamped to it).
     #[inline]
     pub fn lookup(&self, x: Vec3) -> f32 {
-        let n = self.n;
-        let q = ((x - self.origin) * self.inv_spacing).clamp(Vec3::ZERO, (n - UVec3::ONE).as_vec3());
-        // q is clamped to >= 0, so truncation is floor.
-        let i0 = q.as_uvec3().min(n - UVec3::splat(2));
-        let f = q - i0.as_vec3();
-        let (sx, sy) = (1usize, n.x as usize);
-        let sz = sy * n.y as usize;
-        let base = i0.x as usize + sy * i0.y as usize + sz * i0.z as usize;
-        let d = |i: usize| self.node(i);
-        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
-        let c00 = lerp(d(base), d(base + sx), f.x);
-        let c10 = lerp(d(base + sy), d(base + sy + sx), f.x);
-        let c01 = lerp(d(base + sz), d(base + sz + sx), f.x);
-        let c11 = lerp(d(base + sz + sy), d(base + sz + sy + sx), f.x);
-        lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z)
+        trilinear_with(self.n, (x - self.origin) * self.inv_spacing, |i| self.node(i))
     }
 }
 
@@ -331,6 +335,12 @@ impl std::fmt::Debug for SunTransmittance {
 /// coordinates `q` (clamped to the lattice; every axis needs two nodes or more).
 #[inline]
 fn trilinear(d: &[f32], n: UVec3, q: Vec3) -> f32 {
+    trilinear_with(n, q, |i| d[i])
+}
+
+/// [`trilinear`] over nodes read by `d` (node index x + n.x (y + n.y z)).
+#[inline(always)]
+fn trilinear_with(n: UVec3, q: Vec3, d: impl Fn(usize) -> f32) -> f32 {
     let q = q.clamp(Vec3::ZERO, (n - UVec3::ONE).as_vec3());
     // q is clamped to >= 0, so truncation is floor (and no libm call per lookup).
     let i0 = q.as_uvec3().min(n - UVec3::splat(2));
@@ -339,10 +349,10 @@ fn trilinear(d: &[f32], n: UVec3, q: Vec3) -> f32 {
     let sz = sy * n.y as usize;
     let base = i0.x as usize + sy * i0.y as usize + sz * i0.z as usize;
     let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
-    let c00 = lerp(d[base], d[base + sx], f.x);
-    let c10 = lerp(d[base + sy], d[base + sy + sx], f.x);
-    let c01 = lerp(d[base + sz], d[base + sz + sx], f.x);
-    let c11 = lerp(d[base + sz + sy], d[base + sz + sy + sx], f.x);
+    let c00 = lerp(d(base), d(base + sx), f.x);
+    let c10 = lerp(d(base + sy), d(base + sy + sx), f.x);
+    let c01 = lerp(d(base + sz), d(base + sz + sx), f.x);
+    let c11 = lerp(d(base + sz + sy), d(base + sz + sy + sx), f.x);
     lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z)
 }
 

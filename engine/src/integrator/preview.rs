@@ -44,8 +44,7 @@ use crate::phase::PhaseFunction;
 use crate::predictor::InScatterPredictor;
 use crate::rng::Rng;
 use crate::scene::Scene;
-use glam::{UVec3, Vec3};
-use rayon::prelude::*;
+use glam::Vec3;
 use std::sync::Arc;
 
 /// Learned lattices of at most this many nodes are filled up front (the window's
@@ -169,14 +168,9 @@ impl Preview {
             let ms = if total { li - medium.phase().eval(omega, sun.to_sun()) * sun.at(p) } else { li };
             if ms.is_finite() { ms.max(0.0) } else { 0.0 }
         });
-        let nodes = n.x * n.y * n.z;
-        if nodes <= EAGER_LATTICE_NODES {
-            // Few nodes: all of them up front, in parallel, so the passes only read.
-            let data = (0..nodes)
-                .into_par_iter()
-                .map(|i| source(origin + UVec3::new(i % n.x, (i / n.x) % n.y, i / (n.x * n.y)).as_vec3() * spacing))
-                .collect();
-            ScalarLattice::new(n, origin, spacing, data)
+        if n.x * n.y * n.z <= EAGER_LATTICE_NODES {
+            // Few nodes: all of them up front, so the passes only read.
+            ScalarLattice::filled(n, origin, spacing, source)
         } else {
             ScalarLattice::lazy(n, origin, spacing, source)
         }

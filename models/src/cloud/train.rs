@@ -313,6 +313,12 @@ pub fn train(
             test_rows.len()
         )));
     }
+    // The value a training row is fitted to, 4 pi L_ms: the path-traced target, or
+    // the teachers' mean when distilling.
+    let train_target = |i: usize| match &data.teacher_targets {
+        Some(t) => t[i],
+        None => FOUR_PI * data.targets[i * 5 + col],
+    };
     // Statistics of the training split (f64 accumulation).
     let (mut mean, mut sq) = (vec![0.0f64; N_FEATURES], vec![0.0f64; N_FEATURES]);
     let (mut ym, mut ysq) = (0.0f64, 0.0f64);
@@ -321,11 +327,7 @@ pub fn train(
             mean[k] += *v as f64;
             sq[k] += (*v as f64).powi(2);
         }
-        let t = match &data.teacher_targets {
-            Some(t) => t[i],
-            None => FOUR_PI * data.targets[i * 5 + col],
-        };
-        let y = t.ln_1p() as f64;
+        let y = train_target(i).ln_1p() as f64;
         ym += y;
         ysq += y * y;
     }
@@ -346,14 +348,10 @@ pub fn train(
     };
     // The loss compares 4 pi L_ms (the linear value the output stands for).
     let targets = |rows: &[usize]| rows.iter().map(|&i| FOUR_PI * data.targets[i * 5 + col]).collect::<Vec<f32>>();
-    let y_train = match &data.teacher_targets {
-        Some(t) => train_rows.iter().map(|&i| t[i]).collect(),
-        None => targets(&train_rows),
-    };
     let fit_data = FitData {
         n_f: N_FEATURES,
         x_train: standardize(&train_rows),
-        y_train,
+        y_train: train_rows.iter().map(|&i| train_target(i)).collect(),
         x_test: standardize(&test_rows),
         y_test: targets(&test_rows),
         loss: Loss::RelativeL2 { mean: target_mean, std: target_std, eps: cfg.eps, power: cfg.loss_power },
@@ -368,8 +366,8 @@ pub fn train(
     let Fitted { mut net, history, samples_per_second } =
         fit(&fit_data, &cfg.schedule, &paths, resume, identity, observer)?;
     let refit = if cfg.refit_output > 0 {
-        let t = (target_mean, target_std, cfg.eps, cfg.loss_power);
-        Some(refit_output_layer(&mut net, &fit_data.x_train, &fit_data.y_train, N_FEATURES, t, cfg.refit_output)?)
+        let (x, y) = (&fit_data.x_train, &fit_data.y_train);
+        Some(refit_output_layer(&mut net, x, y, N_FEATURES, fit_data.loss, cfg.refit_output)?)
     } else {
         None
     };

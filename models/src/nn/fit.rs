@@ -90,19 +90,22 @@ impl Network {
     }
 
     pub fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        let (w, b) = self.params.last().expect("a network has an output layer");
+        self.hidden(x)?.matmul(&w.as_tensor().t()?)?.broadcast_add(b.as_tensor())?.squeeze(1)
+    }
+
+    /// The activations of the last hidden layer: every layer but the output one.
+    pub fn hidden(&self, x: &Tensor) -> candle_core::Result<Tensor> {
         let mut h = x.clone();
-        let last = self.params.len() - 1;
-        for (l, (w, b)) in self.params.iter().enumerate() {
+        for (w, b) in &self.params[..self.params.len() - 1] {
             h = h.matmul(&w.as_tensor().t()?)?.broadcast_add(b.as_tensor())?;
-            if l < last {
-                h = match self.activation {
-                    Activation::Relu => h.relu()?,
-                    Activation::Tanh => h.tanh()?,
-                    Activation::Silu => h.silu()?,
-                };
-            }
+            h = match self.activation {
+                Activation::Relu => h.relu()?,
+                Activation::Tanh => h.tanh()?,
+                Activation::Silu => h.silu()?,
+            };
         }
-        h.squeeze(1)
+        Ok(h)
     }
 
     /// Named tensors in the model file's convention: layers.L.weight / layers.L.bias.

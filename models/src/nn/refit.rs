@@ -18,7 +18,7 @@
 //! clipped. Sums run over fixed chunks in a fixed order, so the result does not
 //! depend on the thread count.
 
-use super::fit::{Network, TrainError};
+use super::fit::{Loss, Network, TrainError};
 use candle_core::{Device, Tensor, Var};
 use rayon::prelude::*;
 
@@ -39,21 +39,11 @@ pub struct RefitReport {
 
 /// The hidden layer before the output for `x` (rows of `n_f` standardized features).
 fn trunk(net: &Network, x: &[f32], n_f: usize) -> Result<(Vec<f32>, usize), TrainError> {
-    let dev = Device::Cpu;
-    let last = net.params.len() - 1;
-    let d = net.params[last].0.as_tensor().dims2()?.1;
+    let d = net.params[net.params.len() - 1].0.as_tensor().dims2()?.1;
     let mut h = Vec::with_capacity(x.len() / n_f * d);
     for rows in x.chunks(CHUNK * n_f) {
-        let mut t = Tensor::from_slice(rows, (rows.len() / n_f, n_f), &dev)?;
-        for (w, b) in &net.params[..last] {
-            t = t.matmul(&w.as_tensor().t()?)?.broadcast_add(b.as_tensor())?;
-            t = match net.activation {
-                super::dense::Activation::Relu => t.relu()?,
-                super::dense::Activation::Tanh => t.tanh()?,
-                super::dense::Activation::Silu => t.silu()?,
-            };
-        }
-        h.extend(t.flatten_all()?.to_vec1::<f32>()?);
+        let t = Tensor::from_slice(rows, (rows.len() / n_f, n_f), &Device::Cpu)?;
+        h.extend(net.hidden(&t)?.flatten_all()?.to_vec1::<f32>()?);
     }
     Ok((h, d))
 }
@@ -174,18 +164,21 @@ fn cholesky_solve(a: &[f64], b: &[f64]) -> Option<Vec<f64>> {
 }
 
 /// Refits the output layer of `net` on rows `x` (standardized, `n_f` per row) and
-/// linear targets `y` under the relative L2 loss with output transform
-/// v = exp(out std + mean) - 1, `transform` = (mean, std, eps, power) as in
-/// [`super::fit::Loss::RelativeL2`]: at most `iterations` damped Gauss-Newton steps, each
+/// linear targets `y` under `loss`, a [`Loss::RelativeL2`] (output transform
+/// v = exp(out std + mean) - 1): at most `iterations` damped Gauss-Newton steps, each
 /// taken only if it lowers the loss.
 pub fn refit_output_layer(
     net: &mut Network,
     x: &[f32],
     y: &[f32],
     n_f: usize,
-    transform: (f32, f32, f32, f32),
+    loss: Loss,
     iterations: usize,
 ) -> Result<RefitReport, TrainError> {
+    let Loss::RelativeL2 { mean, std, eps, power } = loss else {
+        return Err(TrainError::Data("the output layer's refit needs the relative L2 loss".into()));
+    };
+    let transform = (mean, std, eps, power);
     let (h, d) = trunk(net, x, n_f)?;
     let last = net.params.len() - 1;
     let (w, b) = &net.params[last];
@@ -283,7 +276,8 @@ mod tests {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| {
                 let mut net = perturbed(&truth);
-                let report = refit_output_layer(&mut net, &x, &y, n_f, t, 20).unwrap();
+                let loss = Loss::RelativeL2 { mean: t.0, std: t.1, eps: t.2, power: t.3 };
+                let report = refit_output_layer(&mut net, &x, &y, n_f, loss, 20).unwrap();
                 let last = net.params.len() - 1;
                 let w = net.params[last].0.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
                 (report, w, net)
