@@ -87,6 +87,33 @@ pub fn spherical_direction(cos_t: f32, phi: f32, axis: Vec3) -> Vec3 {
     local_to_world(Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t), axis)
 }
 
+/// The radical inverse of `i` in base `b`: its base-b digits mirrored about the
+/// point (van der Corput), in [0, 1).
+#[inline]
+pub fn radical_inverse(mut i: u32, b: u32) -> f64 {
+    let (inv, mut f, mut r) = (1.0 / b as f64, 1.0 / b as f64, 0.0f64);
+    while i > 0 {
+        r += (i % b) as f64 * f;
+        i /= b;
+        f *= inv;
+    }
+    r
+}
+
+/// Point `index` of the Halton sequence in bases 2, 3 and 5, rotated by `shift` in
+/// [0, 1)^3 (a Cranley-Patterson rotation: a uniformly random shift makes each point
+/// uniform over [0, 1)^3, while the first N points keep their even spread: along each
+/// axis the first b^k lie one in each interval of length b^-k, and the first 6^k one
+/// in each 2^-k x 3^-k box of the first two axes, all shifted alike). In f32, below 1.
+#[inline]
+pub fn halton_point(index: u32, shift: [f64; 3]) -> [f32; 3] {
+    const BASES: [u32; 3] = [2, 3, 5];
+    std::array::from_fn(|k| ((radical_inverse(index, BASES[k]) + shift[k]).fract() as f32).min(ONE_BELOW))
+}
+
+/// The largest f32 below 1.
+const ONE_BELOW: f32 = 1.0 - f32::EPSILON / 2.0;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -170,5 +197,44 @@ mod chi2_tests {
         let r = chi2_test(&obs, &exp, 5.0);
         assert!(r.p_value > 0.01, "{r:?}");
         assert!((uniform_disk_pdf() * PI - 1.0).abs() < 1e-6);
+    }
+
+    /// Halton points under random rotations are uniform over [0, 1)^3 (any one
+    /// point: chi-square over 8^3 cells, 400,000 rotations), and prefixes keep their
+    /// strata: the first b^k points of axis b (2, 3, 5) leave no circular gap of
+    /// 2 b^-k or more, and the first 36 points of the first two axes, unrotated, lie
+    /// one in each 1/4 x 1/9 box.
+    #[test]
+    fn halton_points_are_uniform_and_stratified() {
+        let mut rng = Rng::new(79, 0, 0);
+        let (nb, n) = (8usize, 400_000);
+        let mut obs = vec![0.0; nb * nb * nb];
+        for i in 0..n {
+            let shift = [rng.uniform_f64(), rng.uniform_f64(), rng.uniform_f64()];
+            let p = halton_point(i as u32 % 97, shift);
+            assert!(p.iter().all(|v| (0.0..1.0).contains(v)), "{p:?}");
+            let c = p.map(|v| (v * nb as f32) as usize);
+            obs[(c[2] * nb + c[1]) * nb + c[0]] += 1.0;
+        }
+        let exp = vec![n as f64 / obs.len() as f64; obs.len()];
+        let r = chi2_test(&obs, &exp, 5.0);
+        assert!(r.p_value > 0.01, "{r:?}");
+        for (axis, b) in [2u32, 3, 5].into_iter().enumerate() {
+            for k in 1..=4 {
+                let count = b.pow(k);
+                let shift = [rng.uniform_f64(), rng.uniform_f64(), rng.uniform_f64()];
+                let mut v: Vec<f32> = (0..count).map(|i| halton_point(i, shift)[axis]).collect();
+                v.sort_by(f32::total_cmp);
+                let wrap = v[0] + 1.0 - v[v.len() - 1];
+                let gap = v.windows(2).map(|w| w[1] - w[0]).fold(wrap, f32::max);
+                assert!(gap < 2.0 / count as f32, "base {b}, {count} points: a gap of {gap}");
+            }
+        }
+        let mut boxes = [0u32; 36];
+        for i in 0..36 {
+            let p = halton_point(i, [0.0; 3]);
+            boxes[(p[1] * 9.0) as usize * 4 + (p[0] * 4.0) as usize] += 1;
+        }
+        assert!(boxes.iter().all(|c| *c == 1), "{boxes:?}");
     }
 }

@@ -215,3 +215,48 @@ fn preview_is_thread_independent() {
     let e = Preview::new(f, MultipleScattering::Octaves { octaves: 3, a: 1.5, b: 0.5, c: 0.5 }, 0.01).unwrap_err();
     assert!(e.contains("a must"), "{e}");
 }
+
+/// The two-tier lattice of multiple scattering: a march reads the fine lattice while
+/// its camera transmittance is at least FAR_TRANSMITTANCE and the coarse one beyond.
+/// With constant lattices A (fine) and B (coarse), a march adds
+/// albedo (A (1 - T_s) + B (T_s - T_end)), T_s the transmittance where it switched
+/// (the first step that starts below the threshold, so within one step's optical
+/// depth of it) and T_end what the sky is seen through: a ray through the middle of a
+/// dense sphere switches there; one near the rim, which never gets that deep, reads
+/// A alone.
+#[test]
+fn two_tier_lattice_switches_at_the_far_transmittance() {
+    use engine::field::{ScalarLattice, lattice_over};
+    use engine::integrator::preview::{FAR_TRANSMITTANCE, LearnedLattice, MAX_STEP_TAU};
+    let mut scene = sphere_scene(8.0, 0.8, 0.5, Vec3::new(0.0, -1.0, 0.0));
+    scene.sky = engine::Sky::uniform(Vec3::ONE);
+    let field = Arc::new(SunTransmittance::build(&scene.medium, scene.sun.as_ref().unwrap(), 64));
+    let (a, b) = (0.3f32, 0.05f32);
+    let constant = |nodes: u32, v: f32| {
+        let (n, spacing) = lattice_over(&scene.medium, nodes);
+        let origin = scene.medium.grid().support_bounds().min;
+        ScalarLattice::new(n, origin, spacing, vec![v; (n.x * n.y * n.z) as usize])
+    };
+    let lattice = LearnedLattice::two_tier(constant(48, a), constant(8, b));
+    let ms = MultipleScattering::Lattice(Arc::new(lattice));
+    let preview = Preview::new(field, ms, Preview::default_step(&scene.medium)).unwrap();
+    let d = Vec3::NEG_Z;
+    for ((offset, x), deep) in [(0.0f32, 0.0f32), (0.5, 0.43), (0.3, -0.1)].into_iter().zip([true, false, true]) {
+        let o = Vec3::new(x, 0.0, 3.0);
+        let s = preview.trace_with_offset(&scene, o, d, offset);
+        let (high, t_end) = (s.high.x as f64 / 0.8, s.direct.x as f64);
+        assert!(high > 0.0 && t_end < 1.0, "the ray at x = {x} crosses the sphere: {s:?}");
+        let (a, b) = (a as f64, b as f64);
+        // high = A (1 - T_s) + B (T_s - T_end), solved for T_s.
+        let t_s = (a - high - b * t_end) / (a - b);
+        let ft = FAR_TRANSMITTANCE as f64;
+        if deep {
+            assert!(t_end < ft * 0.1, "the middle ray goes deep: T_end {t_end}");
+            let lo = ft * (-(MAX_STEP_TAU as f64)).exp() * (1.0 - 1e-4);
+            assert!(t_s > lo && t_s <= ft * (1.0 + 1e-4), "x = {x}: switched at T {t_s}, not in ({lo}, {ft}]");
+        } else {
+            assert!(t_end > ft, "the rim ray stays shallow: T_end {t_end}");
+            assert!((high - a * (1.0 - t_end)).abs() < 1e-4 * a, "x = {x}: {high} vs {}", a * (1.0 - t_end));
+        }
+    }
+}

@@ -5,9 +5,12 @@
 //!
 //! Each sample marches its camera ray over the majorant cells it crosses (skipping
 //! empty ones) in steps of at most `step` world units and at most [`MAX_STEP_TAU`]
-//! optical depths at the cell's majorant, each step sampled at a random offset (the
-//! same offset for the whole ray), so passes average out the discretization and the
-//! image keeps refining; dense clouds cost steps by optical depth, not by length.
+//! optical depths at the cell's majorant, each step sampled at the same offset within
+//! it, so passes average out the discretization and the image keeps refining; dense
+//! clouds cost steps by optical depth, not by length. In the renderer the pixel
+//! position and the offset of pass i are point i of a Halton sequence rotated per
+//! pixel ([`crate::sampling::halton_point`]), so the passes cover each pixel and each
+//! step evenly and the image settles faster than with independent samples.
 //! Over a step of length h with extinction sigma_t at its sample point, the camera
 //! transmittance falls by exp(-sigma_t h) and the step adds
 //! T_cam (1 - exp(-sigma_t h)) albedo S, with the source
@@ -23,9 +26,11 @@
 //! scattered in the cloud is not included (as in prediction mode).
 //!
 //! Multiple scattering ([`MultipleScattering`]):
-//! - `Lattice`: L_ms(x, omega) for a unit sun, sampled at the nodes of a coarse lattice
-//!   with omega the direction from the node toward the camera, interpolated
-//!   trilinearly (multiple scattering varies slowly; [`Preview::learned_lattice`]);
+//! - `Lattice`: L_ms(x, omega) for a unit sun, sampled at the nodes of a lattice with
+//!   omega the direction from the node toward the camera, interpolated trilinearly
+//!   (multiple scattering varies slowly; [`Preview::learned_lattice`]); a fine lattice
+//!   is filled as the marches read it and serves them down to a camera transmittance
+//!   of [`FAR_TRANSMITTANCE`], a coarse one beyond ([`LearnedLattice`]);
 //! - `Octaves` (Wrenninge et al. 2013, "Oz: The Great and Volumetric"): octave i >= 1
 //!   adds b^i p(theta; c^i g) T_sun^(a^i), a Henyey-Greenstein lobe of c^i times the
 //!   medium's mean cosine g and a transmittance of a^i times the optical depth (octave
@@ -52,6 +57,15 @@ use std::sync::Arc;
 /// filled as the marches read them.
 pub const EAGER_LATTICE_NODES: u32 = 32 * 32 * 32;
 
+/// Camera transmittance below which a march reads L_ms from the coarse lattice behind
+/// a fine lazy one ([`LearnedLattice`]): what lies deeper adds at most this fraction of
+/// a ray's light, so its error there is scaled down by it, and the fine lattice's
+/// nodes are paid only in the camera-facing skin of the cloud.
+pub const FAR_TRANSMITTANCE: f32 = 0.05;
+
+/// Nodes per axis, at most, of the coarse lattice behind a fine lazy one.
+pub const FAR_LATTICE_NODES: u32 = 32;
+
 /// Camera transmittance below which a march ends (what is left is invisible).
 pub const MIN_TRANSMITTANCE: f32 = 1e-4;
 
@@ -64,7 +78,7 @@ pub const MAX_STEP_TAU: f32 = 0.1;
 #[derive(Clone, Debug)]
 pub enum MultipleScattering {
     /// L_ms for a unit sun on a lattice (see the module documentation).
-    Lattice(Arc<ScalarLattice>),
+    Lattice(Arc<LearnedLattice>),
     /// The octave approximation with N terms (single scattering included) and
     /// factors a (optical depth), b (amplitude), c (mean cosine).
     Octaves { octaves: u32, a: f32, b: f32, c: f32 },
@@ -89,6 +103,56 @@ impl MultipleScattering {
             }
         }
         Ok(())
+    }
+}
+
+/// L_ms for a unit sun on a lattice as fine as asked, and, when that one is filled
+/// lazily, a coarse one (at most [`FAR_LATTICE_NODES`] per axis, also lazy) from the
+/// same source, read where the camera's transmittance has fallen below
+/// [`FAR_TRANSMITTANCE`].
+pub struct LearnedLattice {
+    near: ScalarLattice,
+    far: Option<ScalarLattice>,
+}
+
+impl LearnedLattice {
+    /// One lattice for every depth.
+    pub fn single(lattice: ScalarLattice) -> Self {
+        LearnedLattice { near: lattice, far: None }
+    }
+
+    /// The lattice read down to [`FAR_TRANSMITTANCE`], and the one read beyond it.
+    pub fn two_tier(near: ScalarLattice, far: ScalarLattice) -> Self {
+        LearnedLattice { near, far: Some(far) }
+    }
+
+    /// L_ms at `x` for a march whose camera transmittance is `tr`.
+    #[inline]
+    pub fn lookup(&self, x: Vec3, tr: f32) -> f32 {
+        match &self.far {
+            Some(far) if tr < FAR_TRANSMITTANCE => far.lookup(x),
+            _ => self.near.lookup(x),
+        }
+    }
+
+    /// The fine lattice's nodes per axis.
+    pub fn nodes(&self) -> glam::UVec3 {
+        self.near.nodes()
+    }
+
+    /// Nodes evaluated so far, both lattices.
+    pub fn evaluated(&self) -> usize {
+        self.near.evaluated() + self.far.as_ref().map_or(0, |f| f.evaluated())
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        self.near.memory_bytes() + self.far.as_ref().map_or(0, |f| f.memory_bytes())
+    }
+}
+
+impl std::fmt::Debug for LearnedLattice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LearnedLattice").field("near", &self.near).field("far", &self.far).finish()
     }
 }
 
@@ -137,51 +201,66 @@ impl Preview {
     /// medium (at most `max_nodes` per axis), with omega the direction from each node
     /// toward `camera`. Above [`EAGER_LATTICE_NODES`] each node is evaluated when a
     /// lookup first reads it (a lazy [`ScalarLattice`]: a march reads the nodes around
-    /// the camera-facing part of the cloud it reaches before its transmittance runs
-    /// out, so a lattice as fine as the grid costs those nodes, not the whole box).
-    /// Nodes whose lattice cells are all empty are 0 (their value only ever multiplies
-    /// a zero density). A predictor of total in-scattered radiance gets the single
-    /// scattering of `sun` subtracted (clamped at 0).
+    /// the camera-facing part of the cloud it reaches, so a lattice as fine as the grid
+    /// costs those nodes, not the whole box), and a coarse lattice of at most
+    /// [`FAR_LATTICE_NODES`] per axis serves the march where its transmittance is
+    /// below [`FAR_TRANSMITTANCE`] ([`LearnedLattice`]). Nodes whose lattice cells are
+    /// all empty are 0 (their value only ever multiplies a zero density). A predictor
+    /// of total in-scattered radiance gets the single scattering of `sun` subtracted
+    /// (clamped at 0).
     pub fn learned_lattice(
         scene: &Scene,
         sun: &Arc<SunTransmittance>,
         predictor: Arc<dyn InScatterPredictor>,
         camera: Vec3,
         max_nodes: u32,
-    ) -> ScalarLattice {
+    ) -> LearnedLattice {
         let medium = scene.medium.clone();
         let (n, spacing) = lattice_over(&medium, max_nodes);
         let origin = medium.grid().support_bounds().min;
         let Some(light) = scene.sun else {
-            return ScalarLattice::new(n, origin, spacing, vec![0.0; (n.x * n.y * n.z) as usize]);
+            return LearnedLattice::single(ScalarLattice::new(
+                n,
+                origin,
+                spacing,
+                vec![0.0; (n.x * n.y * n.z) as usize],
+            ));
         };
         let total = predictor.predicts_single_scattering();
         let sun = sun.clone();
-        let source: NodeSource = Arc::new(move |p: Vec3| {
-            // A node is read wherever its lattice cells are: it is needed unless
-            // the medium is empty across all of them.
-            if medium.majorant().max_in(Bounds3::new(p - spacing, p + spacing)) <= 0.0 {
-                return 0.0;
-            }
-            let Some(omega) = (camera - p).try_normalize() else { return 0.0 };
-            let li = predictor.predict(&medium, &light, p, omega);
-            let ms = if total { li - medium.phase().eval(omega, sun.to_sun()) * sun.at(p) } else { li };
-            if ms.is_finite() { ms.max(0.0) } else { 0.0 }
-        });
+        let source = move |spacing: Vec3| -> NodeSource {
+            let (medium, predictor, sun) = (medium.clone(), predictor.clone(), sun.clone());
+            Arc::new(move |p: Vec3| {
+                // A node is read wherever its lattice cells are: it is needed unless
+                // the medium is empty across all of them.
+                if medium.majorant().max_in(Bounds3::new(p - spacing, p + spacing)) <= 0.0 {
+                    return 0.0;
+                }
+                let Some(omega) = (camera - p).try_normalize() else { return 0.0 };
+                let li = predictor.predict(&medium, &light, p, omega);
+                let ms = if total { li - medium.phase().eval(omega, sun.to_sun()) * sun.at(p) } else { li };
+                if ms.is_finite() { ms.max(0.0) } else { 0.0 }
+            })
+        };
         if n.x * n.y * n.z <= EAGER_LATTICE_NODES {
             // Few nodes: all of them up front, so the passes only read.
-            ScalarLattice::filled(n, origin, spacing, source)
-        } else {
-            ScalarLattice::lazy(n, origin, spacing, source)
+            return LearnedLattice::single(ScalarLattice::filled(n, origin, spacing, source(spacing)));
         }
+        let near = ScalarLattice::lazy(n, origin, spacing, source(spacing));
+        let (nf, spacing_far) = lattice_over(&scene.medium, FAR_LATTICE_NODES);
+        LearnedLattice::two_tier(near, ScalarLattice::lazy(nf, origin, spacing_far, source(spacing_far)))
     }
 
     /// One sample of the radiance arriving at `o` from direction `-d`, split into the
     /// buffers of the module documentation.
     pub fn trace(&self, scene: &Scene, o: Vec3, d: Vec3, rng: &mut Rng) -> PathSample {
+        self.trace_with_offset(scene, o, d, rng.uniform())
+    }
+
+    /// [`Preview::trace`] with the march's offset within its steps given, in [0, 1).
+    pub fn trace_with_offset(&self, scene: &Scene, o: Vec3, d: Vec3, offset: f32) -> PathSample {
         let medium = &scene.medium;
         let mut out = PathSample::default();
-        let offset = rng.uniform();
         let Some(sun) = &scene.sun else {
             out.direct = scene.sky.radiance(d);
             return out;
@@ -232,7 +311,7 @@ impl Preview {
                 let tau_sun = self.sun.optical_depth(x);
                 single += w * p_single * (-tau_sun).exp();
                 multiple += w * match &self.multiple {
-                    MultipleScattering::Lattice(l) => l.lookup(x),
+                    MultipleScattering::Lattice(l) => l.lookup(x, tr),
                     // Octave i sees the sun through a^i of the optical depth.
                     MultipleScattering::Octaves { .. } => {
                         lobes[..octaves].iter().map(|&(amp, exp)| amp * (-tau_sun * exp).exp()).sum::<f32>()

@@ -94,6 +94,10 @@ pub struct EvalArgs {
     /// approximation with its defaults and fitted to the reference).
     #[arg(long, default_value_t = 32)]
     pub preview_passes: u32,
+    /// Nodes per axis, at most, of the learned preview's lattice of multiple
+    /// scattering (default: the scene files', one node per voxel up to 128).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(2..=1024))]
+    pub preview_nodes: Option<u32>,
     /// Light every scene by the evaluation sky as well as the sun ([`EVAL_SKY`]: a
     /// clear-day gradient over a ground of albedo 0.3), for the bias of prediction
     /// under sun + sky against the same scenes under the sun alone.
@@ -261,7 +265,10 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         let base = (gi as u64) * renders_per_group;
         bar.set_position(base);
         bar.set_message(format!("scene {label} {config} rho {rho}"));
-        let file = eval_scene(preset, config, *rho, args.size, args.res, args.sky)?;
+        let mut file = eval_scene(preset, config, *rho, args.size, args.res, args.sky)?;
+        if let Some(n) = args.preview_nodes {
+            file.render.preview_nodes = n;
+        }
         let grid = match grids.iter().find(|(p, _)| p == preset) {
             Some((_, g)) => g.clone(),
             None => {
