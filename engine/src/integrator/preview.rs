@@ -110,6 +110,7 @@ impl MultipleScattering {
 /// lazily, a coarse one (at most [`FAR_LATTICE_NODES`] per axis, also lazy) from the
 /// same source, read where the camera's transmittance has fallen below
 /// [`FAR_TRANSMITTANCE`].
+#[derive(Debug)]
 pub struct LearnedLattice {
     near: ScalarLattice,
     far: Option<ScalarLattice>,
@@ -147,12 +148,6 @@ impl LearnedLattice {
 
     pub fn memory_bytes(&self) -> usize {
         self.near.memory_bytes() + self.far.as_ref().map_or(0, |f| f.memory_bytes())
-    }
-}
-
-impl std::fmt::Debug for LearnedLattice {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("LearnedLattice").field("near", &self.near).field("far", &self.far).finish()
     }
 }
 
