@@ -95,13 +95,13 @@ pub struct CloudField {
 }
 
 impl CloudField {
-    /// Builds the pyramid (up to the coarsest level's width) and the sun field (at
+    /// Builds the pyramid (the levels the stencil's widths read) and the sun field (at
     /// most `max_nodes` per axis); both in parallel, independent of the thread count.
     pub fn build(medium: &Medium, sun: &Sun, max_nodes: u32) -> Self {
         let h0 = medium.bounds().extent().max_element() / BASE_DIVISIONS;
         let h: [f32; LEVELS] = std::array::from_fn(|l| h0 * (1u32 << l) as f32);
         let (pyramid, field) = rayon::join(
-            || DensityPyramid::new(medium.grid(), 0.5 * h[LEVELS - 1]).quantized(),
+            || DensityPyramid::for_widths(medium.grid(), &h.map(|h| 0.5 * h)).quantized(),
             || SunTransmittance::build(medium, sun, max_nodes),
         );
         let blends = std::array::from_fn(|l| pyramid.select(0.5 * h[l]));

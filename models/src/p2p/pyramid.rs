@@ -58,11 +58,12 @@ impl Texels {
     /// non-negative densities does not make, clamp to 0).
     fn quantized(&self) -> Texels {
         let Texels::F32(d) = self else { return self.clone() };
-        let max = d.iter().fold(0.0f32, |m, v| m.max(*v));
+        // (The largest value, in parallel: a maximum does not depend on the order.)
+        let max = d.par_iter().fold(|| 0.0f32, |m, v| m.max(*v)).reduce(|| 0.0f32, f32::max);
         // (65535 / max, not 1 / scale: a subnormal scale would invert to infinity.)
         let inv = if max > 0.0 { 65535.0 / max } else { 0.0 };
         let (scale, inv) = if inv.is_finite() { (max / 65535.0, inv) } else { (0.0, 0.0) };
-        Texels::U16 { q: d.iter().map(|v| (v * inv).round().clamp(0.0, 65535.0) as u16).collect(), scale }
+        Texels::U16 { q: d.par_iter().map(|v| (v * inv).round().clamp(0.0, 65535.0) as u16).collect(), scale }
     }
 
     #[inline(always)]
@@ -333,12 +334,6 @@ fn resample_axis(
             (lo, w.into_iter().map(|x| x as f32).collect())
         })
         .collect();
-    let stride = |d: [usize; 3], a: usize| match a {
-        0 => 1,
-        1 => d[0],
-        _ => d[0] * d[1],
-    };
-    let (s_in, s_out) = (stride(dims, axis), stride(out_dims, axis));
     let total: usize = out_dims.iter().product();
     let mut out = vec![0.0f32; total];
     // Each output value is the same sum in the same order as a line-by-line pass,
@@ -359,29 +354,91 @@ fn resample_axis(
                 }
             }
         });
-    } else {
-        // Along x or y: the lines of one z slice stay within it.
-        let in_slice = dims[0] * dims[1];
-        let other = 1 - axis;
+    } else if axis == 1 {
+        // Along y: output row j of a z slice is a weighted sum of whole input rows
+        // (the taps in the same order as along a line, so the same sums).
+        let (row, in_slice) = (dims[0], dims[0] * dims[1]);
         out.par_chunks_mut(slice_len).enumerate().for_each(|(z, slice)| {
             let src = &data[z * in_slice..(z + 1) * in_slice];
-            for i_other in 0..dims[other] {
-                let base_in = i_other * stride(dims, other);
-                let base_out = i_other * stride(out_dims, other);
-                for (j, (lo, w)) in taps.iter().enumerate() {
-                    let mut v = 0.0f32;
-                    for (k, wk) in w.iter().enumerate() {
-                        let i = lo + k as i64;
-                        if i >= 0 && i < n_in {
-                            v += wk * src[base_in + i as usize * s_in];
+            for (dst, (lo, w)) in slice.chunks_mut(row).zip(&taps) {
+                for (k, wk) in w.iter().enumerate() {
+                    let i = lo + k as i64;
+                    if i >= 0 && i < n_in {
+                        let src = &src[i as usize * row..(i as usize + 1) * row];
+                        for (o, v) in dst.iter_mut().zip(src) {
+                            *o += wk * v;
                         }
                     }
-                    slice[base_out + j * s_out] = v;
+                }
+            }
+        });
+    } else {
+        // Along x: each line is contiguous; the taps inside the input, in order.
+        let row_out = out_dims[0];
+        out.par_chunks_mut(slice_len).enumerate().for_each(|(z, slice)| {
+            for (l, dst) in slice.chunks_mut(row_out).enumerate() {
+                let line = z * dims[1] + l;
+                let src = &data[line * dims[0]..(line + 1) * dims[0]];
+                for (o, (lo, w)) in dst.iter_mut().zip(&taps) {
+                    let k0 = (-lo).clamp(0, w.len() as i64) as usize;
+                    let k1 = (n_in - lo).clamp(0, w.len() as i64) as usize;
+                    let mut v = 0.0f32;
+                    if k0 < k1 {
+                        let first = (lo + k0 as i64) as usize;
+                        for (wk, x) in w[k0..k1].iter().zip(&src[first..first + (k1 - k0)]) {
+                            v += wk * x;
+                        }
+                    }
+                    *o = v;
                 }
             }
         });
     }
     (out, out_dims)
+}
+
+/// [`resample_axis`] line by line, as the definition of its sums (tests compare the
+/// two bit for bit).
+#[cfg(test)]
+fn resample_axis_by_lines(
+    data: &[f32],
+    dims: [usize; 3],
+    axis: usize,
+    var: f64,
+    start: f64,
+    step: f64,
+    n_out: usize,
+) -> Vec<f32> {
+    let mut out_dims = dims;
+    out_dims[axis] = n_out;
+    let n_in = dims[axis] as i64;
+    let radius = (4.0 * var.sqrt()).ceil().max(1.0) + 1.0;
+    let stride = |d: [usize; 3], a: usize| [1, d[0], d[0] * d[1]][a];
+    let mut out = vec![0.0f32; out_dims.iter().product()];
+    let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+    for ia in 0..dims[a] {
+        for ib in 0..dims[b] {
+            let base_in = ia * stride(dims, a) + ib * stride(dims, b);
+            let base_out = ia * stride(out_dims, a) + ib * stride(out_dims, b);
+            for j in 0..n_out {
+                let c = start + step * j as f64;
+                let lo = (c - radius).ceil() as i64;
+                let hi = (c + radius).floor() as i64;
+                let mut w: Vec<f64> = (lo..=hi).map(|i| (-(i as f64 - c).powi(2) / (2.0 * var)).exp()).collect();
+                let s: f64 = w.iter().sum();
+                w.iter_mut().for_each(|x| *x /= s);
+                let mut v = 0.0f32;
+                for (k, wk) in w.iter().enumerate() {
+                    let i = lo + k as i64;
+                    if i >= 0 && i < n_in {
+                        v += *wk as f32 * data[base_in + i as usize * stride(dims, axis)];
+                    }
+                }
+                out[base_out + j * stride(out_dims, axis)] = v;
+            }
+        }
+    }
+    out
 }
 
 /// Which pyramid levels a filter width reads, and how they blend.
@@ -390,6 +447,27 @@ pub struct LevelBlend {
     lo: usize,
     hi: usize,
     f: f32,
+}
+
+/// The two levels of the pyramid with level widths `stds` (increasing) and the blend
+/// weight of filter width `std` ([`DensityPyramid::select`]).
+fn select_in(stds: &[f32], std: f32) -> LevelBlend {
+    let i = stds.partition_point(|s| *s <= std);
+    if i == 0 {
+        return LevelBlend { lo: 0, hi: 0, f: 0.0 };
+    }
+    let last = stds.len() - 1;
+    if i > last {
+        return LevelBlend { lo: last, hi: last, f: 0.0 };
+    }
+    let (a, b) = (stds[i - 1], stds[i]);
+    // Variance-matched blend: (1 - f) a^2 + f b^2 = std^2. A width that is a
+    // level's own reads that level alone (the same value, half the lookups).
+    let f = ((std * std - a * a) / (b * b - a * a)).clamp(0.0, 1.0);
+    if f == 0.0 {
+        return LevelBlend { lo: i - 1, hi: i - 1, f: 0.0 };
+    }
+    LevelBlend { lo: i - 1, hi: i, f }
 }
 
 /// The Gaussian pyramid of a density grid (values in density units, before rho).
@@ -432,6 +510,19 @@ fn block_average(grid: &DensityGrid, f: u32) -> Vec<f32> {
 impl DensityPyramid {
     /// Builds levels until one's filter is wider than `max_std` (world units).
     pub fn new(grid: &DensityGrid, max_std: f32) -> Self {
+        Self::build(grid, max_std, None)
+    }
+
+    /// [`DensityPyramid::new`] for lookups at the filter widths `widths` alone (up to
+    /// the largest): the levels that their [`DensityPyramid::select`] blends read are
+    /// made as `new` makes them, bit for bit; the others are left empty (no samples:
+    /// a lookup through one reads 0), which skips their filtering and their memory.
+    pub fn for_widths(grid: &DensityGrid, widths: &[f32]) -> Self {
+        let max_std = widths.iter().fold(0.0f32, |m, w| m.max(*w));
+        Self::build(grid, max_std, Some(widths))
+    }
+
+    fn build(grid: &DensityGrid, max_std: f32, widths: Option<&[f32]>) -> Self {
         // A big grid (above 256^3 voxels) starts from block averages over 2^n voxels
         // per axis, so the pyramid's finest level stays within 64 MiB: features wider
         // than a voxel of it are unchanged, finer ones see the average.
@@ -487,18 +578,32 @@ impl DensityPyramid {
         // widths h and sqrt(2) h; then each octave's base width 2 h_m and, toward
         // the next octave, 2 sqrt(2) h_m on the same grid.
         let sqrt2 = std::f32::consts::SQRT_2;
-        let mut levels = vec![raw.clone(), blur(&raw, 0.0, 1.0 - tent), blur(&raw, 0.0, 2.0 - tent)];
-        let mut stds = vec![hmax * tent.sqrt() as f32, hmax, sqrt2 * hmax];
         let n_oct = octaves.len();
-        for (m, level) in octaves.into_iter().enumerate() {
+        let mut stds = vec![hmax * tent.sqrt() as f32, hmax, sqrt2 * hmax];
+        for (m, level) in octaves.iter().enumerate() {
             let h = level.h.max_element();
-            let half = (m + 1 < n_oct).then(|| blur(&level, base, 8.0 - tent));
-            levels.push(level);
             stds.push(2.0 * h);
-            if let Some(half) = half {
-                levels.push(half);
+            if m + 1 < n_oct {
                 stds.push(2.0 * sqrt2 * h);
             }
+        }
+        // Which levels the asked widths read (all of them without a list).
+        let mut needed = vec![widths.is_none(); stds.len()];
+        for w in widths.unwrap_or(&[]) {
+            let s = select_in(&stds, *w);
+            (needed[s.lo], needed[s.hi]) = (true, true);
+        }
+        let empty = |level: &Level| level.with_data([0; 3], Texels::F32(Vec::new()));
+        let made = |i: usize, make: &dyn Fn() -> Level, like: &Level| if needed[i] { make() } else { empty(like) };
+        let mut levels = vec![
+            made(0, &|| raw.clone(), &raw),
+            made(1, &|| blur(&raw, 0.0, 1.0 - tent), &raw),
+            made(2, &|| blur(&raw, 0.0, 2.0 - tent), &raw),
+        ];
+        for (m, level) in octaves.into_iter().enumerate() {
+            let half = (m + 1 < n_oct).then(|| made(levels.len() + 1, &|| blur(&level, base, 8.0 - tent), &level));
+            levels.push(if needed[levels.len()] { level } else { empty(&level) });
+            levels.extend(half);
         }
         DensityPyramid { levels, stds }
     }
@@ -536,22 +641,7 @@ impl DensityPyramid {
     /// many lookups of one width).
     #[inline]
     pub fn select(&self, std: f32) -> LevelBlend {
-        let i = self.stds.partition_point(|s| *s <= std);
-        if i == 0 {
-            return LevelBlend { lo: 0, hi: 0, f: 0.0 };
-        }
-        let last = self.levels.len() - 1;
-        if i > last {
-            return LevelBlend { lo: last, hi: last, f: 0.0 };
-        }
-        let (a, b) = (self.stds[i - 1], self.stds[i]);
-        // Variance-matched blend: (1 - f) a^2 + f b^2 = std^2. A width that is a
-        // level's own reads that level alone (the same value, half the lookups).
-        let f = ((std * std - a * a) / (b * b - a * a)).clamp(0.0, 1.0);
-        if f == 0.0 {
-            return LevelBlend { lo: i - 1, hi: i - 1, f: 0.0 };
-        }
-        LevelBlend { lo: i - 1, hi: i, f }
+        select_in(&self.stds, std)
     }
 
     /// [`DensityPyramid::lookup_in`] for many points: `out[i]` for `points[i]`. All
@@ -771,5 +861,63 @@ mod tests {
         }
         // Rounding really happened (the test sees the 16-bit samples).
         assert!(worst > 0.01 * step, "worst difference {worst}, step {step}");
+    }
+
+    /// A pyramid made for some filter widths reads, at those widths, exactly what the
+    /// whole pyramid reads (quantized too, as the cloud-aware model's features use
+    /// it), holds fewer samples, and leaves out the levels no width reads.
+    #[test]
+    fn pyramid_for_some_widths_reads_the_same_at_them() {
+        let grid = DensityGrid::from_fn(
+            glam::UVec3::splat(24),
+            engine::Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)),
+            |p| (1.0 - 2.2 * p.length()).max(0.0) * (1.0 + (9.0 * p.x).sin()),
+        )
+        .unwrap();
+        let h = 1.0 / 24.0;
+        // A level's own width, between levels, below the raw voxels and beyond the top.
+        let widths = [0.5 * h, h, 2.7 * h, 4.0 * h, 11.0 * h, 0.2 * h, 40.0 * h];
+        let full = DensityPyramid::new(&grid, 40.0 * h).quantized();
+        let some = DensityPyramid::for_widths(&grid, &widths).quantized();
+        assert_eq!(full.levels(), some.levels());
+        assert!(some.bytes() < full.bytes(), "{} vs {}", some.bytes(), full.bytes());
+        let mut rng = engine::Rng::new(5, 0, 0);
+        let points: Vec<Vec3> =
+            (0..203).map(|_| (Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5) * 1.2).collect();
+        let mut read = vec![false; full.levels()];
+        for w in widths {
+            let (a, b) = (full.select(w), some.select(w));
+            assert_eq!((a.lo, a.hi, a.f.to_bits()), (b.lo, b.hi, b.f.to_bits()), "width {w}");
+            (read[a.lo], read[a.hi]) = (true, true);
+            let (mut x, mut y) = (vec![0.0; points.len()], vec![0.0; points.len()]);
+            full.lookup_many(a, &points, &mut x);
+            some.lookup_many(b, &points, &mut y);
+            assert!(x.iter().zip(&y).all(|(x, y)| x.to_bits() == y.to_bits()), "width {w}");
+            assert!(x.iter().any(|v| *v > 0.0), "width {w} reads the cloud");
+        }
+        for (i, r) in read.iter().enumerate() {
+            assert_eq!(some.levels[i].data.bytes() > 0, *r, "level {i}: kept only if read");
+        }
+    }
+
+    /// The separable filter, vectorized along rows and slices, makes exactly the sums
+    /// of its line-by-line definition, along each axis, for a filter and resampling
+    /// like an octave's (halving, padded) and a blur's (same grid).
+    #[test]
+    fn resampling_matches_the_line_by_line_sums() {
+        let dims = [13usize, 9, 11];
+        let mut rng = engine::Rng::new(6, 0, 0);
+        let data: Vec<f32> = (0..dims.iter().product::<usize>()).map(|_| rng.uniform()).collect();
+        for axis in 0..3 {
+            for (var, start, step, n_out) in
+                [(3.8, -8.0, 1.0, dims[axis] + 16), (11.5, 0.5 - 16.0, 2.0, 23), (0.8, 0.0, 1.0, dims[axis])]
+            {
+                let (fast, out_dims) = resample_axis(&data, dims, axis, var, start, step, n_out);
+                let slow = resample_axis_by_lines(&data, dims, axis, var, start, step, n_out);
+                assert_eq!(out_dims[axis], n_out);
+                assert!(fast.iter().zip(&slow).all(|(a, b)| a.to_bits() == b.to_bits()), "axis {axis}, var {var}");
+                assert!(fast.iter().any(|v| *v > 0.0));
+            }
+        }
     }
 }
