@@ -31,6 +31,7 @@ fn small_evaluation_runs_end_to_end() {
         // 1,024 spp, toplit, g = 0.85).
         preview_spp: Some(32_768),
         preview_passes: 8,
+        preview_nodes: None,
         sky: false,
         out: out.clone(),
         run: RunArgs { threads: None, quiet: true },

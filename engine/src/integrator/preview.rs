@@ -141,11 +141,6 @@ impl LearnedLattice {
         self.near.nodes()
     }
 
-    /// Nodes evaluated so far, both lattices.
-    pub fn evaluated(&self) -> usize {
-        self.near.evaluated() + self.far.as_ref().map_or(0, |f| f.evaluated())
-    }
-
     pub fn memory_bytes(&self) -> usize {
         self.near.memory_bytes() + self.far.as_ref().map_or(0, |f| f.memory_bytes())
     }

@@ -306,6 +306,24 @@ impl Level {
     }
 }
 
+/// For each of `n_out` output positions j (at input index position `start + step *
+/// j`): the first input index and the normalized weights of a Gaussian of variance
+/// `var` (input voxels^2) over the indices within 4 standard deviations plus one.
+fn gaussian_taps(var: f64, start: f64, step: f64, n_out: usize) -> Vec<(i64, Vec<f32>)> {
+    let radius = (4.0 * var.sqrt()).ceil().max(1.0) + 1.0;
+    (0..n_out)
+        .map(|j| {
+            let c = start + step * j as f64;
+            let lo = (c - radius).ceil() as i64;
+            let hi = (c + radius).floor() as i64;
+            let mut w: Vec<f64> = (lo..=hi).map(|i| (-(i as f64 - c).powi(2) / (2.0 * var)).exp()).collect();
+            let s: f64 = w.iter().sum();
+            w.iter_mut().for_each(|x| *x /= s);
+            (lo, w.into_iter().map(|x| x as f32).collect())
+        })
+        .collect()
+}
+
 /// Convolves `data` along `axis` with a normalized Gaussian of variance `var` (in
 /// input voxels) and resamples: output voxel j sits at input index position
 /// `start + step * j`, and `n_out` of them are made.
@@ -321,19 +339,8 @@ fn resample_axis(
     let mut out_dims = dims;
     out_dims[axis] = n_out;
     let n_in = dims[axis] as i64;
-    let radius = (4.0 * var.sqrt()).ceil().max(1.0) + 1.0;
     // Weights per output position along the axis (the same for every line).
-    let taps: Vec<(i64, Vec<f32>)> = (0..n_out)
-        .map(|j| {
-            let c = start + step * j as f64;
-            let lo = (c - radius).ceil() as i64;
-            let hi = (c + radius).floor() as i64;
-            let mut w: Vec<f64> = (lo..=hi).map(|i| (-(i as f64 - c).powi(2) / (2.0 * var)).exp()).collect();
-            let s: f64 = w.iter().sum();
-            w.iter_mut().for_each(|x| *x /= s);
-            (lo, w.into_iter().map(|x| x as f32).collect())
-        })
-        .collect();
+    let taps = gaussian_taps(var, start, step, n_out);
     let total: usize = out_dims.iter().product();
     let mut out = vec![0.0f32; total];
     // Each output value is the same sum in the same order as a line-by-line pass,
@@ -400,19 +407,9 @@ fn resample_axis(
 /// [`resample_axis`] line by line, as the definition of its sums (tests compare the
 /// two bit for bit).
 #[cfg(test)]
-fn resample_axis_by_lines(
-    data: &[f32],
-    dims: [usize; 3],
-    axis: usize,
-    var: f64,
-    start: f64,
-    step: f64,
-    n_out: usize,
-) -> Vec<f32> {
+fn resample_axis_by_lines(data: &[f32], dims: [usize; 3], axis: usize, taps: &[(i64, Vec<f32>)]) -> Vec<f32> {
     let mut out_dims = dims;
-    out_dims[axis] = n_out;
-    let n_in = dims[axis] as i64;
-    let radius = (4.0 * var.sqrt()).ceil().max(1.0) + 1.0;
+    out_dims[axis] = taps.len();
     let stride = |d: [usize; 3], a: usize| [1, d[0], d[0] * d[1]][a];
     let mut out = vec![0.0f32; out_dims.iter().product()];
     let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
@@ -420,18 +417,12 @@ fn resample_axis_by_lines(
         for ib in 0..dims[b] {
             let base_in = ia * stride(dims, a) + ib * stride(dims, b);
             let base_out = ia * stride(out_dims, a) + ib * stride(out_dims, b);
-            for j in 0..n_out {
-                let c = start + step * j as f64;
-                let lo = (c - radius).ceil() as i64;
-                let hi = (c + radius).floor() as i64;
-                let mut w: Vec<f64> = (lo..=hi).map(|i| (-(i as f64 - c).powi(2) / (2.0 * var)).exp()).collect();
-                let s: f64 = w.iter().sum();
-                w.iter_mut().for_each(|x| *x /= s);
+            for (j, (lo, w)) in taps.iter().enumerate() {
                 let mut v = 0.0f32;
                 for (k, wk) in w.iter().enumerate() {
                     let i = lo + k as i64;
-                    if i >= 0 && i < n_in {
-                        v += *wk as f32 * data[base_in + i as usize * stride(dims, axis)];
+                    if i >= 0 && i < dims[axis] as i64 {
+                        v += wk * data[base_in + i as usize * stride(dims, axis)];
                     }
                 }
                 out[base_out + j * stride(out_dims, axis)] = v;
@@ -913,7 +904,7 @@ mod tests {
                 [(3.8, -8.0, 1.0, dims[axis] + 16), (11.5, 0.5 - 16.0, 2.0, 23), (0.8, 0.0, 1.0, dims[axis])]
             {
                 let (fast, out_dims) = resample_axis(&data, dims, axis, var, start, step, n_out);
-                let slow = resample_axis_by_lines(&data, dims, axis, var, start, step, n_out);
+                let slow = resample_axis_by_lines(&data, dims, axis, &gaussian_taps(var, start, step, n_out));
                 assert_eq!(out_dims[axis], n_out);
                 assert!(fast.iter().zip(&slow).all(|(a, b)| a.to_bits() == b.to_bits()), "axis {axis}, var {var}");
                 assert!(fast.iter().any(|v| *v > 0.0));
