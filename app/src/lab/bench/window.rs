@@ -28,6 +28,11 @@ pub struct BenchLatencyArgs {
     /// Repetitions per kind of change (the median is reported).
     #[arg(long, default_value_t = 9)]
     pub reps: u32,
+    /// Milliseconds to wait before each timed change, so that the worker has finished
+    /// what the previous change set going (0: the next change follows the previous
+    /// first image at once, as when an artist keeps adjusting).
+    #[arg(long, default_value_t = 0)]
+    pub settle_ms: u64,
 }
 
 /// Resident set size of this process in MiB (Linux), or None where /proc is missing.
@@ -200,8 +205,9 @@ pub fn bench_latency(args: BenchLatencyArgs) -> Result<()> {
         ),
     ];
     println!(
-        "# nimbus bench latency: ms from a change to the first image (median of {}), {} threads",
+        "# nimbus bench latency: ms from a change to the first image (median of {}, {} ms settling before each), {} threads",
         args.reps,
+        args.settle_ms,
         rayon::current_num_threads()
     );
     println!("| change | path tracing | prediction (k 2) |");
@@ -211,7 +217,10 @@ pub fn bench_latency(args: BenchLatencyArgs) -> Result<()> {
         for scene in [&base, &predict] {
             first_image(scene, false)?;
             let mut times: Vec<f64> = (0..args.reps.max(1))
-                .map(|i| first_image(&change(scene, i).0, change(scene, i).1))
+                .map(|i| {
+                    std::thread::sleep(std::time::Duration::from_millis(args.settle_ms));
+                    first_image(&change(scene, i).0, change(scene, i).1)
+                })
                 .collect::<Result<_>>()?;
             times.sort_by(f64::total_cmp);
             cols.push(times[times.len() / 2]);
