@@ -207,10 +207,7 @@ impl Renderer {
         // Halton sequence over the passes, rotated per pixel: its passes tile each
         // pixel and each march step evenly, so its image settles faster than with
         // independent samples (its integrand is smooth apart from edges).
-        let preview = match self.integrator.technique() {
-            crate::integrator::Technique::Preview => self.integrator.preview_state(),
-            _ => None,
-        };
+        let preview = self.integrator.active_preview();
         // BDPT's predictions are evaluated per tile, in one batch.
         let mut deferred = Vec::new();
         for y in y0..y1 {

@@ -137,6 +137,18 @@ struct Small {
     cfg: CloudTrainConfig,
 }
 
+/// Trains `data` into `out`, stopped after 2 epochs; the run's error.
+fn train_stopped(data: &CloudTrainData, cfg: &CloudTrainConfig, out: &Path) -> models::nn::fit::TrainError {
+    let stop = StopAfterEpochs::new(2);
+    train(data, None, cfg, out, false, "test", "test", &stop).err().expect("a stopped run is an error")
+}
+
+/// `dir`/a.safetensors and `dir`/b.safetensors hold the same bytes.
+fn assert_same_weights(dir: &Path, what: &str) {
+    let read = |name: &str| std::fs::read(dir.join(name)).unwrap();
+    assert_eq!(read("a.safetensors"), read("b.safetensors"), "{what}");
+}
+
 fn small_training_set() -> Small {
     let s = CloudSpec { points: 96, points_per_cloud: 8, ..spec() };
     let root = tempfile::tempdir().unwrap();
@@ -157,15 +169,10 @@ fn training_resumes_and_the_model_round_trips() {
     assert_eq!(report.test.points + report.train_points, 96);
     assert!(report.test.bias.is_finite() && report.test.bias_std_error > 0.0, "{:?}", report.test);
     // Stopped after 2 epochs, resumed: the same weights as the straight run.
-    let stop = StopAfterEpochs::new(2);
-    let e = train(&data, None, &cfg, &root.path().join("b"), false, "test", "test", &stop).err().unwrap();
+    let e = train_stopped(&data, &cfg, &root.path().join("b"));
     assert!(e.to_string().contains("--resume"), "{e}");
     train(&data, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
-    assert_eq!(
-        std::fs::read(root.path().join("a.safetensors")).unwrap(),
-        std::fs::read(root.path().join("b.safetensors")).unwrap(),
-        "resumed training differs"
-    );
+    assert_same_weights(root.path(), "resumed training differs");
     // The fast evaluator against candle on the same weights, and the loaded model
     // against the one returned.
     let weights = root.path().join("a.safetensors");
@@ -242,8 +249,8 @@ fn distillation_trains_on_the_teachers_mean() {
     };
     let mut d1 = distilled(1, &[&t1, &t2], &["t1", "t2"]);
     let d3 = distilled(3, &[&t1, &t2], &["t1", "t2"]);
-    let y = d1.teacher_targets.clone().unwrap();
-    assert_eq!(Some(&y), d3.teacher_targets.as_ref(), "teacher targets depend on the thread count");
+    let y = d1.distilled.as_ref().unwrap().targets.clone();
+    assert_eq!(Some(&y), d3.distilled.as_ref().map(|d| &d.targets), "teacher targets depend on the thread count");
     let (mut s1, mut s2) = (t1.mlp.scratch(), t2.mlp.scratch());
     let four_pi = 4.0 * std::f32::consts::PI;
     for (i, row) in data.features.chunks_exact(N_FEATURES).enumerate() {
@@ -257,17 +264,12 @@ fn distillation_trains_on_the_teachers_mean() {
     // same: the straight run's weights. The sidecar names the teachers.
     let (_, report) = train(&d1, None, &cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
     assert!(report.refit.is_some() && report.test.bias.is_finite());
-    let stop = StopAfterEpochs::new(2);
-    assert!(train(&d1, None, &cfg, &root.path().join("b"), false, "test", "test", &stop).is_err());
+    train_stopped(&d1, &cfg, &root.path().join("b"));
     let other = distilled(2, &[&t1], &["t1"]);
     let e = train(&other, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).err().unwrap();
     assert!(e.to_string().contains("other settings or data"), "{e}");
     train(&d1, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
-    assert_eq!(
-        std::fs::read(root.path().join("a.safetensors")).unwrap(),
-        std::fs::read(root.path().join("b.safetensors")).unwrap(),
-        "resumed distillation differs"
-    );
+    assert_same_weights(root.path(), "resumed distillation differs");
     let side: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(root.path().join("a.json")).unwrap()).unwrap();
     assert_eq!(side["training"]["teachers"], serde_json::json!(["t1", "t2"]));

@@ -121,11 +121,11 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
         let mut teachers = vec![];
         let mut fingerprints = vec![];
         for p in &args.teacher {
-            teachers
-                .push(models::cloud::model::CloudModel::load(p).with_context(|| format!("--teacher {}", p.display()))?);
-            let f =
-                models::fingerprint::model_file_fingerprint(p).with_context(|| format!("--teacher {}", p.display()))?;
-            fingerprints.push(format!("{f:016x}"));
+            // Each file read once: the model and its fingerprint from the same bytes.
+            let named = || format!("--teacher {}", p.display());
+            let (bytes, sidecar) = models::global::model::read_model_files(p).with_context(named)?;
+            teachers.push(models::cloud::model::CloudModel::from_bytes(&bytes, &sidecar, p).with_context(named)?);
+            fingerprints.push(format!("{:016x}", models::fingerprint::fingerprint(&[&bytes, sidecar.as_bytes()])));
         }
         let t = std::time::Instant::now();
         data.distill_from(&teachers.iter().collect::<Vec<_>>(), fingerprints)?;

@@ -158,6 +158,15 @@ impl Integrator {
         self.preview.as_ref()
     }
 
+    /// The preview when it is the technique that traces (what
+    /// [`Integrator::trace_deferring`] hands a ray to).
+    pub fn active_preview(&self) -> Option<&preview::Preview> {
+        match (&self.technique, &self.preview) {
+            (Technique::Preview, Some(p)) => Some(p),
+            _ => None,
+        }
+    }
+
     /// BDPT prediction with `m` light subpath candidates per camera end vertex (see
     /// [`bdpt::Prediction::candidates`]); an error outside prediction mode.
     pub fn with_light_candidates(self, m: u32) -> Result<Self, IntegratorError> {
@@ -286,7 +295,7 @@ impl Integrator {
         if let Technique::Bdpt(b) = &self.technique {
             return bdpt::trace(&self.settings, b, self.transport.as_ref(), scene, o, d, rng, pool, deferred);
         }
-        if let (Technique::Preview, Some(p)) = (&self.technique, &self.preview) {
+        if let Some(p) = self.active_preview() {
             return p.trace(scene, o, d, rng);
         }
         path::trace(&self.settings, self.predictor.as_deref(), scene, o, d, rng)

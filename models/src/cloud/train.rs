@@ -124,9 +124,16 @@ pub struct CloudTrainData {
     /// Which cloud each row comes from: (data set index, chunk).
     pub clouds: Vec<(u32, u64)>,
     pub sources: Vec<String>,
-    /// With teachers ([`CloudTrainData::distill_from`]): 4 pi times the mean of their
-    /// predictions per row, the training target in place of the path-traced mean.
-    pub teacher_targets: Option<Vec<f32>>,
+    /// Set by [`CloudTrainData::distill_from`].
+    pub distilled: Option<Distilled>,
+}
+
+/// Distillation's training targets and where they come from.
+#[derive(Clone, Debug)]
+pub struct Distilled {
+    /// 4 pi times the teachers' mean prediction per row, the training target in place
+    /// of the path-traced mean.
+    pub targets: Vec<f32>,
     /// The teachers' fingerprints (part of the run's identity).
     pub teachers: Vec<String>,
 }
@@ -136,14 +143,8 @@ impl CloudTrainData {
         if dirs.is_empty() {
             return Err(TrainError::Data("no data set given".into()));
         }
-        let mut out = CloudTrainData {
-            features: vec![],
-            targets: vec![],
-            clouds: vec![],
-            sources: vec![],
-            teacher_targets: None,
-            teachers: vec![],
-        };
+        let mut out =
+            CloudTrainData { features: vec![], targets: vec![], clouds: vec![], sources: vec![], distilled: None };
         for (k, d) in dirs.iter().enumerate() {
             let ds = CloudDataset::load(d).map_err(|e| TrainError::Data(e.to_string()))?;
             if ds.manifest.settings.held_out {
@@ -195,8 +196,7 @@ impl CloudTrainData {
                 *v = FOUR_PI * (sum / teachers.len() as f64) as f32;
             }
         });
-        self.teacher_targets = Some(y);
-        self.teachers = fingerprints;
+        self.distilled = Some(Distilled { targets: y, teachers: fingerprints });
         Ok(())
     }
 }
@@ -315,8 +315,8 @@ pub fn train(
     }
     // The value a training row is fitted to, 4 pi L_ms: the path-traced target, or
     // the teachers' mean when distilling.
-    let train_target = |i: usize| match &data.teacher_targets {
-        Some(t) => t[i],
+    let train_target = |i: usize| match &data.distilled {
+        Some(d) => d.targets[i],
         None => FOUR_PI * data.targets[i * 5 + col],
     };
     // Statistics of the training split (f64 accumulation).
@@ -360,8 +360,9 @@ pub fn train(
     // The refit follows the stochastic fit deterministically, so a checkpoint stands
     // for any refit: a finished run resumed with another --refit-output refits only.
     let fit_cfg = CloudTrainConfig { refit_output: 0, ..cfg.clone() };
+    let teachers: &[String] = data.distilled.as_ref().map_or(&[], |d| &d.teachers);
     let sources: Vec<String> =
-        data.sources.iter().cloned().chain(data.teachers.iter().map(|t| format!("teacher {t}"))).collect();
+        data.sources.iter().cloned().chain(teachers.iter().map(|t| format!("teacher {t}"))).collect();
     let identity = RunIdentity { config: &fit_cfg, sources: &sources, points: data.len() };
     let Fitted { mut net, history, samples_per_second } =
         fit(&fit_data, &cfg.schedule, &paths, resume, identity, observer)?;
@@ -408,7 +409,7 @@ pub fn train(
         "command": command,
         "code_version": code_version,
         "data": data.sources,
-        "teachers": data.teachers,
+        "teachers": teachers,
         "points": data.len(),
         "config": cfg,
         "report": report,
