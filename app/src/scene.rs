@@ -25,7 +25,8 @@ use crate::cloud::Builtin;
 use engine::field::SunTransmittance;
 use engine::integrator::preview::{MultipleScattering, Preview};
 use engine::{
-    Camera, DensityGrid, InScatterPredictor, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene, Sky, Sun,
+    Camera, Cancel, DensityGrid, InScatterPredictor, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene,
+    Sky, Sun,
 };
 use glam::Vec3;
 use models::global::ModelError;
@@ -47,6 +48,9 @@ pub enum SceneError {
     Range { key: &'static str, value: String, range: &'static str },
     #[error("{0}")]
     Invalid(String),
+    /// The set-up was abandoned on request (the render it was for was superseded).
+    #[error("cancelled")]
+    Cancelled,
 }
 
 fn range_err(key: &'static str, value: impl std::fmt::Display, range: &'static str) -> SceneError {
@@ -747,20 +751,22 @@ impl SceneFile {
     /// render: it falls back to path tracing and returns a warning naming the file
     /// and the problem.
     pub fn integrator(&self, scene: &Scene, max_nodes: u32) -> Result<IntegratorSetup, SceneError> {
-        self.integrator_cached(scene, max_nodes, &mut PredictorCache::default())
+        self.integrator_cached(scene, max_nodes, &mut PredictorCache::default(), Cancel::NEVER)
     }
 
     /// [`SceneFile::integrator`], reusing the bound model of `cache` when the cloud,
     /// rho, sun direction, model and field size are the same (camera, k, p, albedo or
-    /// g changes then cost nothing), and leaving the new one there.
+    /// g changes then cost nothing), and leaving the new one there. The fields' builds
+    /// stop when `cancel` asks ([`SceneError::Cancelled`]; nothing is cached then).
     pub fn integrator_cached(
         &self,
         scene: &Scene,
         max_nodes: u32,
         cache: &mut PredictorCache,
+        cancel: Cancel,
     ) -> Result<IntegratorSetup, SceneError> {
         if self.render.mode == "preview" {
-            return self.preview(scene, max_nodes, cache);
+            return self.preview(scene, max_nodes, cache, cancel);
         }
         if self.render.mode != "predict" {
             return Ok(IntegratorSetup { integrator: self.integrator_with(None)?, warning: None });
@@ -768,7 +774,7 @@ impl SceneFile {
         if self.render.integrator == "bdpt" {
             return self.bdpt_prediction(scene, cache);
         }
-        match self.bound_model(scene, max_nodes, cache)? {
+        match self.bound_model(scene, max_nodes, cache, cancel)? {
             Ok(bound) => Ok(IntegratorSetup { integrator: self.integrator_with(Some(bound))?, warning: None }),
             Err(e) => {
                 let mut reference = self.clone();
@@ -789,6 +795,7 @@ impl SceneFile {
         scene: &Scene,
         max_nodes: u32,
         cache: &mut PredictorCache,
+        cancel: Cancel,
     ) -> Result<Result<Arc<dyn InScatterPredictor>, ModelError>, SceneError> {
         if scene.sun.is_none() {
             return Err(SceneError::Invalid("prediction needs a sun".into()));
@@ -801,12 +808,15 @@ impl SceneFile {
             cache.bound.insert(0, hit);
             return Ok(Ok(bound));
         }
-        Ok(self.load_model().map(|model| {
-            let bound = model.bind_scene(scene, max_nodes).expect("a sun, checked above");
-            cache.bound.insert(0, (key, bound.clone()));
-            cache.bound.truncate(PredictorCache::BINDINGS);
-            bound
-        }))
+        let model = match self.load_model() {
+            Ok(m) => m,
+            Err(e) => return Ok(Err(e)),
+        };
+        // With a sun (checked above) None is a cancelled build.
+        let bound = model.bind_scene_until(scene, max_nodes, cancel).ok_or(SceneError::Cancelled)?;
+        cache.bound.insert(0, (key, bound.clone()));
+        cache.bound.truncate(PredictorCache::BINDINGS);
+        Ok(Ok(bound))
     }
 }
 
@@ -828,6 +838,7 @@ impl SceneFile {
         scene: &Scene,
         max_nodes: u32,
         cache: &mut PredictorCache,
+        cancel: Cancel,
     ) -> Result<IntegratorSetup, SceneError> {
         let err = |e: String| SceneError::Invalid(format!("render: {e}"));
         let sun = scene.sun.as_ref().ok_or_else(|| SceneError::Invalid("the preview needs a sun".into()))?;
@@ -838,7 +849,10 @@ impl SceneFile {
         let field = match cache.sun.iter().position(|(k, _)| *k == key) {
             Some(i) => cache.sun[i].1.clone(),
             None => {
-                let f = Arc::new(SunTransmittance::build(&scene.medium, sun, sun_nodes));
+                let f = Arc::new(
+                    SunTransmittance::build_until(&scene.medium, sun, sun_nodes, cancel)
+                        .ok_or(SceneError::Cancelled)?,
+                );
                 // Two sizes per change in the window (the first look's, the full
                 // preview's): keep both.
                 cache.sun.insert(0, (key, f.clone()));
@@ -850,7 +864,7 @@ impl SceneFile {
         let multiple = if self.render.preview == "octaves" {
             self.octaves()
         } else {
-            match self.bound_model(scene, max_nodes, cache)? {
+            match self.bound_model(scene, max_nodes, cache, cancel)? {
                 Ok(predictor) => MultipleScattering::Lattice(Arc::new(Preview::learned_lattice(
                     scene,
                     &field,

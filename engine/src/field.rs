@@ -24,10 +24,11 @@
 use crate::grid::Bounds3;
 use crate::light::Sun;
 use crate::medium::Medium;
+use crate::render::Cancel;
 use glam::{UVec3, Vec3};
 use rayon::prelude::*;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 
 /// The nodes of a lattice over a medium's support: at most `max_nodes` per axis and
 /// at most one per grid voxel plus one; returns (nodes per axis, spacing).
@@ -41,8 +42,16 @@ pub fn lattice_over(medium: &Medium, max_nodes: u32) -> (UVec3, Vec3) {
 /// Optical depth from every node of the lattice (`n` nodes per axis from
 /// `support.min`, `spacing` apart) along the unit direction `d` to where the ray
 /// leaves the support; node index x + n.x (y + n.y z). The nodes of one slice are
-/// computed in parallel; the result does not depend on the thread count.
-pub fn optical_depth_sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing: Vec3, d: Vec3) -> Vec<f32> {
+/// computed in parallel; the result does not depend on the thread count. None when
+/// `cancel` asks to stop (checked before every slice).
+pub fn optical_depth_sweep(
+    medium: &Medium,
+    support: Bounds3,
+    n: UVec3,
+    spacing: Vec3,
+    d: Vec3,
+    cancel: Cancel,
+) -> Option<Vec<f32>> {
     let nodes = (n.x * n.y * n.z) as usize;
     let mut tau = vec![0.0f32; nodes];
     let a = d.abs().max_position();
@@ -64,6 +73,9 @@ pub fn optical_depth_sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing:
     // Slices from the exit side inward; the exit slice itself keeps tau = 0 (rays from
     // it leave the support at once).
     for step in 1..na {
+        if cancel.requested() {
+            return None;
+        }
         let s = if d[a] > 0.0 { na - 1 - step } else { step };
         let s_up = if d[a] > 0.0 { s + 1 } else { s - 1 };
         let done = &tau;
@@ -111,7 +123,7 @@ pub fn optical_depth_sweep(medium: &Medium, support: Bounds3, n: UVec3, spacing:
             }
         }
     }
-    tau
+    Some(tau)
 }
 
 /// A node's value as a function of its position (a lazily filled lattice's source).
@@ -246,6 +258,12 @@ impl SunTransmittance {
     /// axis; the columns are integrated in parallel and the result does not depend
     /// on the thread count.
     pub fn build(medium: &Medium, sun: &Sun, max_nodes: u32) -> Self {
+        Self::build_until(medium, sun, max_nodes, Cancel::NEVER).expect("never cancelled")
+    }
+
+    /// [`SunTransmittance::build`], or None when `cancel` asks to stop (checked before
+    /// every column).
+    pub fn build_until(medium: &Medium, sun: &Sun, max_nodes: u32, cancel: Cancel) -> Option<Self> {
         let w = -sun.direction();
         let (u, v) = crate::sampling::coordinate_system(w);
         let support = medium.grid().support_bounds();
@@ -267,7 +285,14 @@ impl SunTransmittance {
         let steps = (spacing.z / voxel).ceil().max(1.0) as u32;
         let dt = spacing.z / steps as f32;
         let mut tau = vec![0.0f32; (n.x * n.y * n.z) as usize];
+        // Set when a column was skipped: the field is then incomplete whatever `cancel`
+        // says afterwards (a stop request can be cleared).
+        let gave_up = AtomicBool::new(false);
         tau.par_chunks_mut(n.z as usize).enumerate().for_each(|(col, column)| {
+            if gave_up.load(Ordering::Relaxed) || cancel.requested() {
+                gave_up.store(true, Ordering::Relaxed);
+                return;
+            }
             let (iu, iv) = (col as u32 % n.x, col as u32 / n.x);
             let base = u * (lo.x + iu as f32 * spacing.x) + v * (lo.y + iv as f32 * spacing.y);
             // From the node nearest the sun (w = hi, outside the support) down.
@@ -284,7 +309,10 @@ impl SunTransmittance {
                 column[k as usize] = t;
             }
         });
-        SunTransmittance { u, v, w, min: lo, inv_spacing: spacing.recip(), n, tau }
+        if gave_up.into_inner() {
+            return None;
+        }
+        Some(SunTransmittance { u, v, w, min: lo, inv_spacing: spacing.recip(), n, tau })
     }
 
     /// Optical depth toward the sun at `x` (trilinear in the light frame; positions
@@ -403,6 +431,31 @@ mod tests {
         }
     }
 
+    /// A sun field for a superseded generation, or with a stop requested, is not
+    /// built; for the current generation it is the uncancellable build's, bit for bit.
+    /// A stop requested and cleared again still yields nothing from a build that
+    /// skipped columns meanwhile (here: requested before it began).
+    #[test]
+    fn a_cancelled_sun_field_is_not_built() {
+        use crate::render::RenderControl;
+        let m = blob();
+        let sun = Sun::new(Vec3::new(0.3, -1.0, 0.2), Vec3::ONE, 0.0).unwrap();
+        let control = RenderControl::new();
+        let g = control.bump();
+        let field = SunTransmittance::build(&m, &sun, 48);
+        let current = SunTransmittance::build_until(&m, &sun, 48, Cancel::on(&control, g)).unwrap();
+        assert!(field.tau.iter().zip(&current.tau).all(|(a, b)| a.to_bits() == b.to_bits()));
+        control.request_stop();
+        assert!(SunTransmittance::build_until(&m, &sun, 48, Cancel::on(&control, g)).is_none());
+        control.clear_stop();
+        control.bump();
+        assert!(SunTransmittance::build_until(&m, &sun, 48, Cancel::on(&control, g)).is_none());
+        let (nodes, spacing) = lattice_over(&m, 32);
+        let sweep = |c| optical_depth_sweep(&m, m.grid().support_bounds(), nodes, spacing, Vec3::Y, c);
+        assert!(sweep(Cancel::on(&control, g)).is_none());
+        assert!(sweep(Cancel::NEVER).is_some());
+    }
+
     /// Voxels of the largest float are capped in the slice sweep as in sigma_t: its
     /// optical depths stay finite and large behind them (uncapped, the sums overflow
     /// to infinity and the upstream interpolation spreads NaN).
@@ -423,7 +476,7 @@ mod tests {
         let m = Medium::new(Arc::new(grid), 40.0, 1.0, PhaseFunction::Isotropic).unwrap();
         let (nodes, spacing) = lattice_over(&m, 64);
         for dir in [Vec3::Y, Vec3::new(0.4, 0.8, 0.3).normalize()] {
-            let tau = optical_depth_sweep(&m, m.grid().support_bounds(), nodes, spacing, dir);
+            let tau = optical_depth_sweep(&m, m.grid().support_bounds(), nodes, spacing, dir, Cancel::NEVER).unwrap();
             assert!(tau.iter().all(|t| t.is_finite() && *t >= 0.0), "toward {dir}");
             assert!(tau.iter().cloned().fold(0.0f32, f32::max) > 30.0, "toward {dir}: the block is opaque");
         }

@@ -36,6 +36,6 @@ pub use light::{Sky, Sun};
 pub use medium::{FreeFlight, Medium};
 pub use phase::PhaseFunction;
 pub use predictor::{InScatterPredictor, P2pQuery, TransportPredictor};
-pub use render::{PassOutcome, RenderControl, Renderer};
+pub use render::{Cancel, PassOutcome, RenderControl, Renderer};
 pub use rng::Rng;
 pub use scene::Scene;

@@ -60,6 +60,29 @@ impl RenderControl {
     }
 }
 
+/// Lets set-up work that takes longer than a frame (fields built per cloud and sun)
+/// give up when the render it is for has been superseded: a [`RenderControl`] and the
+/// generation the work belongs to, as a pass checks them. [`Cancel::NEVER`] is work
+/// that always finishes.
+#[derive(Clone, Copy, Debug)]
+pub struct Cancel<'a>(Option<(&'a RenderControl, u64)>);
+
+impl<'a> Cancel<'a> {
+    /// Never cancelled.
+    pub const NEVER: Cancel<'static> = Cancel(None);
+
+    /// Cancelled when `control` moves past `generation` or a stop is requested.
+    pub fn on(control: &'a RenderControl, generation: u64) -> Self {
+        Cancel(Some((control, generation)))
+    }
+
+    /// Whether the work should stop now.
+    #[inline]
+    pub fn requested(&self) -> bool {
+        self.0.is_some_and(|(c, g)| c.should_abort(g))
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PassOutcome {
     Completed,

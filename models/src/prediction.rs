@@ -6,7 +6,7 @@
 use crate::cloud::{BoundCloudModel, CloudModel};
 use crate::global::model::ModelError;
 use crate::global::{BoundGlobalModel, GlobalModel};
-use engine::{InScatterPredictor, Medium, Scene, Sun};
+use engine::{Cancel, InScatterPredictor, Medium, Scene, Sun};
 use std::path::Path;
 use std::sync::Arc;
 
@@ -83,12 +83,25 @@ impl PredictionModel {
     /// global model's depth field gets at most `max_nodes` nodes per axis (64 values a
     /// node); the cloud model's sun field, one value a node, twice as many (at most 256).
     pub fn bind(&self, medium: &Medium, sun: &Sun, max_nodes: u32) -> Arc<dyn InScatterPredictor> {
-        match self {
+        self.bind_until(medium, sun, max_nodes, Cancel::NEVER).expect("never cancelled")
+    }
+
+    /// [`PredictionModel::bind`], or None when `cancel` asks to stop.
+    pub fn bind_until(
+        &self,
+        medium: &Medium,
+        sun: &Sun,
+        max_nodes: u32,
+        cancel: Cancel,
+    ) -> Option<Arc<dyn InScatterPredictor>> {
+        Some(match self {
             PredictionModel::Cloud(m) => {
-                Arc::new(BoundCloudModel::new(m.clone(), medium, sun, (2 * max_nodes).clamp(2, 256)))
+                Arc::new(BoundCloudModel::new_until(m.clone(), medium, sun, (2 * max_nodes).clamp(2, 256), cancel)?)
             }
-            PredictionModel::Global(m) => Arc::new(BoundGlobalModel::new(m.clone(), medium, sun, max_nodes)),
-        }
+            PredictionModel::Global(m) => {
+                Arc::new(BoundGlobalModel::new_until(m.clone(), medium, sun, max_nodes, cancel)?)
+            }
+        })
     }
 
     /// Binds the model to `scene`'s cloud and sun as [`PredictionModel::bind`] does,
@@ -98,16 +111,28 @@ impl PredictionModel {
     /// and sample the sun's disk. The cloud model answers its sun only.
     /// None for a scene without a sun (prediction has nothing to answer for).
     pub fn bind_scene(&self, scene: &Scene, max_nodes: u32) -> Option<Arc<dyn InScatterPredictor>> {
+        self.bind_scene_until(scene, max_nodes, Cancel::NEVER)
+    }
+
+    /// [`PredictionModel::bind_scene`], also None when `cancel` asks to stop.
+    pub fn bind_scene_until(
+        &self,
+        scene: &Scene,
+        max_nodes: u32,
+        cancel: Cancel,
+    ) -> Option<Arc<dyn InScatterPredictor>> {
         let sun = scene.sun.as_ref()?;
         Some(match self {
-            PredictionModel::Global(m) if needs_other_lights(scene) => {
-                Arc::new(BoundGlobalModel::new(m.clone(), &scene.medium, sun, max_nodes).with_other_lights(
-                    &scene.medium,
-                    crate::global::sky_field::DEFAULT_TEXELS,
-                    (max_nodes / 2).max(2),
-                ))
-            }
-            _ => self.bind(&scene.medium, sun, max_nodes),
+            PredictionModel::Global(m) if needs_other_lights(scene) => Arc::new(
+                BoundGlobalModel::new_until(m.clone(), &scene.medium, sun, max_nodes, cancel)?
+                    .with_other_lights_until(
+                        &scene.medium,
+                        crate::global::sky_field::DEFAULT_TEXELS,
+                        (max_nodes / 2).max(2),
+                        cancel,
+                    )?,
+            ),
+            _ => self.bind_until(&scene.medium, sun, max_nodes, cancel)?,
         })
     }
 }

@@ -276,7 +276,12 @@ pub fn turntable(args: TurntableArgs) -> Result<()> {
         let frame_start = Instant::now();
         let frame = turned(&file, &args.orbit, angle)?;
         let scene = Arc::new(frame.build_scene(Some(grid.clone()))?);
-        let setup = frame.integrator_cached(&scene, models::global::depth_field::DEFAULT_MAX_NODES, &mut cache)?;
+        let setup = frame.integrator_cached(
+            &scene,
+            models::global::depth_field::DEFAULT_MAX_NODES,
+            &mut cache,
+            engine::Cancel::NEVER,
+        )?;
         if let (Some(w), 0) = (&setup.warning, i) {
             bar.suspend(|| eprintln!("warning: {w}"));
         }

@@ -12,7 +12,7 @@
 //! between a change and the preview. A scene in preview mode refines its own preview.
 
 use crate::scene::{PredictorCache, SceneFile};
-use engine::{Buffer, DensityGrid, Film, PassOutcome, RenderControl, Renderer, Scene};
+use engine::{Buffer, Cancel, DensityGrid, Film, PassOutcome, RenderControl, Renderer, Scene};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -133,18 +133,20 @@ struct Job {
 }
 
 /// The preview of `file` with the higher orders by `which` ("octaves" or "learned"),
-/// its fields at `nodes` (see [`SceneFile::integrator_cached`]).
+/// its fields at `nodes` (see [`SceneFile::integrator_cached`]); their builds stop when
+/// `cancel` asks.
 fn preview_renderer(
     file: &SceneFile,
     scene: Arc<Scene>,
     which: &str,
     nodes: u32,
     cache: &mut PredictorCache,
+    cancel: Cancel,
 ) -> Result<Renderer, String> {
     let mut f = file.clone();
     f.render.mode = "preview".into();
     f.render.preview = which.into();
-    let setup = f.integrator_cached(&scene, nodes, cache).map_err(|e| e.to_string())?;
+    let setup = f.integrator_cached(&scene, nodes, cache, cancel).map_err(|e| e.to_string())?;
     Renderer::new(scene, setup.integrator).map_err(|e| e.to_string())
 }
 
@@ -171,15 +173,17 @@ pub const COARSE_FIELD_NODES: u32 = 24;
 
 /// Builds the renderers of `scene` on `grid`: the scene's own and, in compare mode
 /// with prediction, the path-traced reference (its own seed). Returns them with the
-/// model's fallback warning, if any.
+/// model's fallback warning, if any. The model's fields stop building when `cancel`
+/// asks (a newer change): the worker then moves on to that change at once.
 fn build_job(
     file: &SceneFile,
     scene: Arc<Scene>,
     nodes: u32,
     compare: bool,
     cache: &mut PredictorCache,
+    cancel: Cancel,
 ) -> Result<(Renderer, Option<Renderer>, Option<String>), String> {
-    let setup = file.integrator_cached(&scene, nodes, cache).map_err(|e| e.to_string())?;
+    let setup = file.integrator_cached(&scene, nodes, cache, cancel).map_err(|e| e.to_string())?;
     let predicting = matches!(setup.integrator.settings().mode, engine::Mode::Predict { .. });
     let reference = if compare && predicting {
         let mut rs = file.clone();
@@ -322,7 +326,14 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                     // times too dark (docs/evaluation.md).
                     let mut first = (*scene).clone();
                     first.render.preview_nodes = FIRST_LOOK_LATTICE;
-                    let quick = preview_renderer(&first, built.clone(), "learned", FIRST_LOOK_FIELD, &mut predictors);
+                    let quick = preview_renderer(
+                        &first,
+                        built.clone(),
+                        "learned",
+                        FIRST_LOOK_FIELD,
+                        &mut predictors,
+                        Cancel::on(&control, generation),
+                    );
                     if let Ok(pr) = quick {
                         // A first look at a quarter of the resolution (a few ms), then
                         // the full one in the loop.
@@ -347,7 +358,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                     upgrade = Some(scene.clone());
                     COARSE_FIELD_NODES
                 };
-                build_job(&scene, built, nodes, compare, &mut predictors)
+                build_job(&scene, built, nodes, compare, &mut predictors, Cancel::on(&control, generation))
             });
             match built {
                 Ok((r, reference, warning)) => {
@@ -364,6 +375,8 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                         standing,
                     });
                 }
+                // A set-up cut short by a newer change: that change is next.
+                Err(_) if control.should_abort(generation) => {}
                 Err(e) => {
                     mailbox.lock().unwrap().error = Some((generation, e));
                     wake();
@@ -386,7 +399,9 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                 let mut file = st.learned.take().expect("checked");
                 file.render.preview_nodes = file.render.preview_nodes.min(STAND_IN_LATTICE);
                 let full = models::global::depth_field::DEFAULT_MAX_NODES;
-                if let Ok(r) = preview_renderer(&file, j.main.scene().clone(), "learned", full, &mut predictors) {
+                let cancel = Cancel::on(&control, j.generation);
+                if let Ok(r) = preview_renderer(&file, j.main.scene().clone(), "learned", full, &mut predictors, cancel)
+                {
                     if control.generation() != j.generation {
                         continue;
                     }
@@ -410,9 +425,8 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             // The coarse field's image is on screen; build the full field and start over.
             let built = j.main.scene().clone();
             let compare = j.reference.is_some();
-            if let Ok((r, reference, _)) =
-                build_job(&scene, built, models::global::depth_field::DEFAULT_MAX_NODES, compare, &mut predictors)
-            {
+            let (full, cancel) = (models::global::depth_field::DEFAULT_MAX_NODES, Cancel::on(&control, j.generation));
+            if let Ok((r, reference, _)) = build_job(&scene, built, full, compare, &mut predictors, cancel) {
                 if control.generation() == j.generation {
                     (j.main, j.reference, j.start) = (r, reference, Instant::now());
                     continue;

@@ -28,7 +28,7 @@
 use crate::p2p::DensityPyramid;
 use crate::p2p::pyramid::LevelBlend;
 use engine::field::SunTransmittance;
-use engine::{Medium, Sun};
+use engine::{Cancel, Medium, Sun};
 use glam::Vec3;
 
 /// Stencil levels.
@@ -98,14 +98,21 @@ impl CloudField {
     /// Builds the pyramid (the levels the stencil's widths read) and the sun field (at
     /// most `max_nodes` per axis); both in parallel, independent of the thread count.
     pub fn build(medium: &Medium, sun: &Sun, max_nodes: u32) -> Self {
+        Self::build_until(medium, sun, max_nodes, Cancel::NEVER).expect("never cancelled")
+    }
+
+    /// [`CloudField::build`], or None when `cancel` asks to stop (the sun field
+    /// checks it per column; the pyramid, a fifth of a second, is finished).
+    pub fn build_until(medium: &Medium, sun: &Sun, max_nodes: u32, cancel: Cancel) -> Option<Self> {
         let h0 = medium.bounds().extent().max_element() / BASE_DIVISIONS;
         let h: [f32; LEVELS] = std::array::from_fn(|l| h0 * (1u32 << l) as f32);
         let (pyramid, field) = rayon::join(
             || DensityPyramid::for_widths(medium.grid(), &h.map(|h| 0.5 * h)).quantized(),
-            || SunTransmittance::build(medium, sun, max_nodes),
+            || SunTransmittance::build_until(medium, sun, max_nodes, cancel),
         );
+        let field = field?;
         let blends = std::array::from_fn(|l| pyramid.select(0.5 * h[l]));
-        CloudField { pyramid, w: field.to_sun(), sun: field, blends, h, rho: medium.rho() }
+        Some(CloudField { pyramid, w: field.to_sun(), sun: field, blends, h, rho: medium.rho() })
     }
 
     /// Bytes held.

@@ -12,7 +12,7 @@ use super::features::{CloudField, N_FEATURES, feature_names};
 use crate::global::model::{ModelError, read_model_files, shipped_once};
 use crate::nn::dense::Activation;
 use crate::nn::mlp::{Mlp, Scratch};
-use engine::{DensityGrid, InScatterPredictor, Medium, Sun};
+use engine::{Cancel, DensityGrid, InScatterPredictor, Medium, Sun};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 use std::cell::RefCell;
@@ -168,13 +168,24 @@ pub struct BoundCloudModel {
 impl BoundCloudModel {
     /// Builds the field for `medium` and `sun` (sun field at most `max_nodes` per axis).
     pub fn new(model: Arc<CloudModel>, medium: &Medium, sun: &Sun, max_nodes: u32) -> Self {
-        BoundCloudModel {
+        Self::new_until(model, medium, sun, max_nodes, Cancel::NEVER).expect("never cancelled")
+    }
+
+    /// [`BoundCloudModel::new`], or None when `cancel` asks to stop.
+    pub fn new_until(
+        model: Arc<CloudModel>,
+        medium: &Medium,
+        sun: &Sun,
+        max_nodes: u32,
+        cancel: Cancel,
+    ) -> Option<Self> {
+        Some(BoundCloudModel {
             model,
-            field: Arc::new(CloudField::build(medium, sun, max_nodes)),
+            field: Arc::new(CloudField::build_until(medium, sun, max_nodes, cancel)?),
             grid: medium.grid().clone(),
             rho: medium.rho(),
             omega_l: sun.direction(),
-        }
+        })
     }
 
     pub fn model(&self) -> &Arc<CloudModel> {

@@ -18,8 +18,8 @@
 //! marching on a voxelized sphere and on a preset cloud.
 
 use super::directions::LightFrame;
-use engine::Medium;
 use engine::field::{lattice_over, optical_depth_sweep};
+use engine::{Cancel, Medium};
 use glam::{UVec3, Vec3};
 use rayon::prelude::*;
 
@@ -42,11 +42,19 @@ impl DepthField {
     /// Builds the field of `medium` for the world directions `dirs`, with at most
     /// `max_nodes` nodes per axis (at most one per grid voxel).
     pub fn build(medium: &Medium, dirs: &[Vec3], max_nodes: u32) -> DepthField {
+        Self::build_until(medium, dirs, max_nodes, Cancel::NEVER).expect("never cancelled")
+    }
+
+    /// [`DepthField::build`], or None when `cancel` asks to stop (checked before every
+    /// slice of every direction's sweep, a few milliseconds apart).
+    pub fn build_until(medium: &Medium, dirs: &[Vec3], max_nodes: u32, cancel: Cancel) -> Option<DepthField> {
         let support = medium.grid().support_bounds();
         let (n, spacing) = lattice_over(medium, max_nodes);
         let nodes = (n.x * n.y * n.z) as usize;
-        let per_dir: Vec<Vec<f32>> =
-            dirs.par_iter().map(|&d| optical_depth_sweep(medium, support, n, spacing, d.normalize())).collect();
+        let per_dir: Vec<Vec<f32>> = dirs
+            .par_iter()
+            .map(|&d| optical_depth_sweep(medium, support, n, spacing, d.normalize(), cancel))
+            .collect::<Option<_>>()?;
         let n_dirs = dirs.len();
         let mut data = vec![0.0f32; nodes * n_dirs];
         data.par_chunks_mut(n_dirs).enumerate().for_each(|(i, row)| {
@@ -54,14 +62,25 @@ impl DepthField {
                 *v = super::features::tau_hat(per_dir[k][i]);
             }
         });
-        DepthField { n, origin: support.min, spacing, inv_spacing: spacing.recip(), n_dirs, data }
+        Some(DepthField { n, origin: support.min, spacing, inv_spacing: spacing.recip(), n_dirs, data })
     }
 
     /// The field for the global model's directions (light frame of `omega_l`).
     pub fn for_light(medium: &Medium, local_dirs: &[Vec3], omega_l: Vec3, max_nodes: u32) -> DepthField {
+        Self::for_light_until(medium, local_dirs, omega_l, max_nodes, Cancel::NEVER).expect("never cancelled")
+    }
+
+    /// [`DepthField::for_light`], or None when `cancel` asks to stop.
+    pub fn for_light_until(
+        medium: &Medium,
+        local_dirs: &[Vec3],
+        omega_l: Vec3,
+        max_nodes: u32,
+        cancel: Cancel,
+    ) -> Option<DepthField> {
         let frame = LightFrame::new(omega_l);
         let world: Vec<Vec3> = local_dirs.iter().map(|d| frame.to_world(*d)).collect();
-        Self::build(medium, &world, max_nodes)
+        Self::build_until(medium, &world, max_nodes, cancel)
     }
 
     pub fn n_dirs(&self) -> usize {
@@ -216,5 +235,39 @@ mod tests {
         // In the features' own units (tau_hat), the mean error is small.
         let mean = sum_err / count as f64;
         assert!(mean < 0.05, "mean |tau_hat error| {mean}");
+    }
+
+    /// A build for a generation still current gives the same bits as one that cannot
+    /// be cancelled; one for a generation already superseded gives nothing; and one
+    /// superseded while it runs stops early (checked per slice of each sweep) instead
+    /// of finishing.
+    #[test]
+    fn a_superseded_build_stops() {
+        use engine::{Cancel, RenderControl};
+        let m = sphere_medium(64, 0.4, 10.0);
+        let dirs = crate::global::directions::direction_set(64).unwrap();
+        let omega_l = Vec3::new(0.3, -1.0, 0.2).normalize();
+        let control = RenderControl::new();
+        let g = control.bump();
+        let t = std::time::Instant::now();
+        let whole = DepthField::for_light(&m, &dirs, omega_l, 64);
+        let whole_secs = t.elapsed().as_secs_f64();
+        let current = DepthField::for_light_until(&m, &dirs, omega_l, 64, Cancel::on(&control, g)).unwrap();
+        assert!(whole.data.iter().zip(&current.data).all(|(a, b)| a.to_bits() == b.to_bits()));
+        control.bump();
+        assert!(DepthField::for_light_until(&m, &dirs, omega_l, 64, Cancel::on(&control, g)).is_none());
+
+        // Superseded a tenth of the way into the build, from another thread.
+        let g = control.bump();
+        let t = std::time::Instant::now();
+        let cut = std::thread::scope(|scope| {
+            let build = scope.spawn(|| DepthField::for_light_until(&m, &dirs, omega_l, 64, Cancel::on(&control, g)));
+            std::thread::sleep(std::time::Duration::from_secs_f64(0.1 * whole_secs));
+            control.bump();
+            build.join().unwrap()
+        });
+        let secs = t.elapsed().as_secs_f64();
+        assert!(cut.is_none(), "the build finished although superseded");
+        assert!(secs < 0.6 * whole_secs, "stopped after {secs:.3} s of a {whole_secs:.3} s build");
     }
 }

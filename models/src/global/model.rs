@@ -14,7 +14,7 @@ use super::features::FeatureExtractor;
 use super::sky_field::SkyDepthField;
 use crate::nn::dense::Activation;
 use crate::nn::mlp::{Mlp, Scratch};
-use engine::{InScatterPredictor, Medium, PhaseFunction, Sun};
+use engine::{Cancel, InScatterPredictor, Medium, PhaseFunction, Sun};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 use std::cell::RefCell;
@@ -379,9 +379,20 @@ impl BoundGlobalModel {
     /// Builds the depth field of `medium` for `sun` (about a second at 64^3 nodes on two
     /// cores; `max_nodes` per axis trades accuracy for time and memory).
     pub fn new(model: Arc<GlobalModel>, medium: &Medium, sun: &Sun, max_nodes: u32) -> Self {
+        Self::new_until(model, medium, sun, max_nodes, Cancel::NEVER).expect("never cancelled")
+    }
+
+    /// [`BoundGlobalModel::new`], or None when `cancel` asks to stop.
+    pub fn new_until(
+        model: Arc<GlobalModel>,
+        medium: &Medium,
+        sun: &Sun,
+        max_nodes: u32,
+        cancel: Cancel,
+    ) -> Option<Self> {
         let omega_l = sun.direction();
-        let field = DepthField::for_light(medium, model.features.directions(), omega_l, max_nodes);
-        BoundGlobalModel {
+        let field = DepthField::for_light_until(medium, model.features.directions(), omega_l, max_nodes, cancel)?;
+        Some(BoundGlobalModel {
             model,
             field: Arc::new(field),
             frame: LightFrame::new(omega_l),
@@ -390,15 +401,26 @@ impl BoundGlobalModel {
             omega_l,
             sky: None,
             near_cos: SUN_FIELD_ANGLE.cos(),
-        }
+        })
     }
 
     /// Adds the field of optical depths along every direction ([`SkyDepthField`],
     /// `texels`^2 directions, at most `max_nodes` nodes per axis), with which the
     /// model answers lights other than its sun without ray marching.
-    pub fn with_other_lights(mut self, medium: &Medium, texels: u32, max_nodes: u32) -> Self {
-        self.sky = Some(Arc::new(SkyDepthField::build(medium, texels, max_nodes)));
-        self
+    pub fn with_other_lights(self, medium: &Medium, texels: u32, max_nodes: u32) -> Self {
+        self.with_other_lights_until(medium, texels, max_nodes, Cancel::NEVER).expect("never cancelled")
+    }
+
+    /// [`BoundGlobalModel::with_other_lights`], or None when `cancel` asks to stop.
+    pub fn with_other_lights_until(
+        mut self,
+        medium: &Medium,
+        texels: u32,
+        max_nodes: u32,
+        cancel: Cancel,
+    ) -> Option<Self> {
+        self.sky = Some(Arc::new(SkyDepthField::build_until(medium, texels, max_nodes, cancel)?));
+        Some(self)
     }
 
     pub fn sky_field(&self) -> Option<&SkyDepthField> {

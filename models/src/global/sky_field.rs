@@ -16,7 +16,7 @@
 
 use super::DepthField;
 use super::directions::LightFrame;
-use engine::Medium;
+use engine::{Cancel, Medium};
 use glam::{Vec2, Vec3};
 
 /// Texels per side of the octahedral direction map.
@@ -53,6 +53,11 @@ impl SkyDepthField {
     /// Builds the field of `medium` over `texels` x `texels` directions, with at most
     /// `max_nodes` nodes per axis.
     pub fn build(medium: &Medium, texels: u32, max_nodes: u32) -> Self {
+        Self::build_until(medium, texels, max_nodes, Cancel::NEVER).expect("never cancelled")
+    }
+
+    /// [`SkyDepthField::build`], or None when `cancel` asks to stop.
+    pub fn build_until(medium: &Medium, texels: u32, max_nodes: u32, cancel: Cancel) -> Option<Self> {
         let texels = texels.max(2);
         let dirs: Vec<Vec3> = (0..texels * texels)
             .map(|t| {
@@ -60,7 +65,7 @@ impl SkyDepthField {
                 oct_decode(Vec2::new((i as f32 + 0.5) / texels as f32, (j as f32 + 0.5) / texels as f32))
             })
             .collect();
-        SkyDepthField { texels, field: DepthField::build(medium, &dirs, max_nodes) }
+        Some(SkyDepthField { texels, field: DepthField::build_until(medium, &dirs, max_nodes, cancel)? })
     }
 
     pub fn memory_bytes(&self) -> usize {

@@ -230,7 +230,12 @@ fn cached(
 
 /// The integrator a scene file asks for; a model's fallback warning is an error here.
 fn from_file(file: &SceneFile, scene: &Scene, predictors: &mut PredictorCache) -> Result<Integrator> {
-    let setup = file.integrator_cached(scene, models::global::depth_field::DEFAULT_MAX_NODES, predictors)?;
+    let setup = file.integrator_cached(
+        scene,
+        models::global::depth_field::DEFAULT_MAX_NODES,
+        predictors,
+        engine::Cancel::NEVER,
+    )?;
     if let Some(w) = setup.warning {
         bail!("{w}");
     }
