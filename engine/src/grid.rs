@@ -379,6 +379,54 @@ impl DensityGrid {
         m
     }
 
+    /// The smallest voxel value in the box `lo ..= hi` (grid voxel indices, inside
+    /// the grid). A sparse grid answers constant bricks (zero ones among them) from
+    /// their slots and reads the voxels of varying ones; it stops at 0.
+    pub fn min_in_box(&self, lo: UVec3, hi: UVec3) -> f32 {
+        let hi = hi.min(self.dims - 1);
+        if lo.cmpgt(hi).any() {
+            return 0.0;
+        }
+        let mut m = f32::INFINITY;
+        let Storage::Sparse(br) = &self.storage else {
+            for z in lo.z..=hi.z {
+                for y in lo.y..=hi.y {
+                    for x in lo.x..=hi.x {
+                        m = m.min(self.voxel(x, y, z));
+                    }
+                }
+            }
+            return m;
+        };
+        let (b0, b1) = (lo / BRICK, hi / BRICK);
+        for bz in b0.z..=b1.z {
+            for by in b0.y..=b1.y {
+                for bx in b0.x..=b1.x {
+                    if m == 0.0 {
+                        return 0.0;
+                    }
+                    let b = UVec3::new(bx, by, bz);
+                    let slot = br.brick_slot(b);
+                    if br.constant[slot] {
+                        m = m.min(br.slot_max[slot]);
+                        continue;
+                    }
+                    let blo = b * BRICK;
+                    let (a, c) = (lo.max(blo) - blo, hi.min(blo + (BRICK - 1)) - blo);
+                    let base = slot * BRICK_VOXELS;
+                    for z in a.z..=c.z {
+                        for y in a.y..=c.y {
+                            for x in a.x..=c.x {
+                                m = m.min(br.pool[base + (x + BRICK * (y + BRICK * z)) as usize]);
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        m
+    }
+
     /// Bricks that are not all zero in a sparse grid's table (every brick of a dense
     /// grid).
     pub fn stored_bricks(&self) -> usize {

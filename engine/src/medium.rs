@@ -22,13 +22,17 @@ use crate::sampling::sample_exponential;
 use glam::{IVec3, UVec3, Vec3};
 use std::sync::Arc;
 
-/// Coarse grid of density maxima, each cell covering `cell_voxels`^3 voxels of the
-/// density grid plus the one-voxel trilinear footprint around them (pbrt-v4
-/// `SampledGrid::MaxValue` widens the same way), over the grid's support.
+/// Coarse grid of density maxima and minima, each cell covering `cell_voxels`^3
+/// voxels of the density grid plus the one-voxel trilinear footprint around them
+/// (pbrt-v4 `SampledGrid::MaxValue` widens the same way), over the grid's support.
+/// The minimum (0 for a cell whose footprint reaches past the grid, where the density
+/// tapers to zero) is the control density of the trackers: what every point of the
+/// cell has at least is handled in closed form, only the rest by sampling.
 #[derive(Clone, Debug)]
 pub struct MajorantGrid {
     dims: UVec3,
     max_density: Vec<f32>,
+    min_density: Vec<f32>,
     /// World box covered (the density grid's support).
     bounds: Bounds3,
     inv_cell_size: Vec3,
@@ -60,15 +64,20 @@ impl MajorantGrid {
         // the exact maximum over them, dense or sparse.
         let lo = |c: u32| (c as i64 * b as i64 - 1).max(0) as u32;
         let hi = |c: u32, nn: u32| (((c + 1) * b) as i64).min(nn as i64 - 1) as u32;
-        let max_density: Vec<f32> = (0..dims.x * dims.y * dims.z)
+        // A footprint that reaches below voxel 0 or above voxel n - 1 interpolates
+        // toward the zero outside the grid.
+        let within = |c: u32, nn: u32| c * b >= 1 && (c + 1) * b < nn;
+        let (max_density, min_density): (Vec<f32>, Vec<f32>) = (0..dims.x * dims.y * dims.z)
             .into_par_iter()
             .map(|i| {
                 let (cx, cy, cz) = (i % dims.x, (i / dims.x) % dims.y, i / (dims.x * dims.y));
                 let (l, h) = (UVec3::new(lo(cx), lo(cy), lo(cz)), UVec3::new(hi(cx, n.x), hi(cy, n.y), hi(cz, n.z)));
-                grid.max_in_box(l, h)
+                let inside = within(cx, n.x) && within(cy, n.y) && within(cz, n.z);
+                let max = grid.max_in_box(l, h);
+                (max, if inside && max > 0.0 { grid.min_in_box(l, h) } else { 0.0 })
             })
-            .collect();
-        MajorantGrid { dims, max_density, bounds: support, inv_cell_size: cell_size.recip() }
+            .unzip();
+        MajorantGrid { dims, max_density, min_density, bounds: support, inv_cell_size: cell_size.recip() }
     }
 
     pub fn dims(&self) -> UVec3 {
@@ -101,7 +110,12 @@ impl MajorantGrid {
 
     #[inline]
     fn cell(&self, c: IVec3) -> f32 {
-        self.max_density[(c.x as u32 + self.dims.x * (c.y as u32 + self.dims.y * c.z as u32)) as usize]
+        self.max_density[self.cell_index(c)]
+    }
+
+    #[inline]
+    fn cell_index(&self, c: IVec3) -> usize {
+        (c.x as u32 + self.dims.x * (c.y as u32 + self.dims.y * c.z as u32)) as usize
     }
 
     /// Iterates the segments of the ray `o + t d`, t in [t_min, t_max], over the
@@ -140,12 +154,14 @@ impl MajorantGrid {
     }
 }
 
-/// One stretch of a ray with a constant majorant density (multiply by rho).
+/// One stretch of a ray with a constant majorant density and a constant lower bound
+/// of the density (multiply by rho).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MajorantSegment {
     pub t_min: f32,
     pub t_max: f32,
     pub max_density: f32,
+    pub min_density: f32,
 }
 
 /// The 3D DDA (Amanatides and Woo) over the majorant grid.
@@ -193,7 +209,13 @@ impl Iterator for MajorantIter<'_> {
             2
         };
         let exit = self.next_t[axis].min(self.t_end);
-        let seg = MajorantSegment { t_min: self.t, t_max: exit, max_density: self.grid.cell(self.cell) };
+        let i = self.grid.cell_index(self.cell);
+        let seg = MajorantSegment {
+            t_min: self.t,
+            t_max: exit,
+            max_density: self.grid.max_density[i],
+            min_density: self.grid.min_density[i],
+        };
         self.t = exit;
         if exit >= self.t_end {
             self.done = true;
@@ -274,6 +296,14 @@ impl Medium {
         Ok(Medium { grid, majorant, rho, albedo, phase, sigma_cap })
     }
 
+    /// The same medium tracked without a control density (every cell's minimum set to
+    /// 0): plain delta and ratio tracking, the baseline `nimbus bench render
+    /// --compare-control` measures against.
+    pub fn without_control(mut self) -> Self {
+        self.majorant.min_density.fill(0.0);
+        self
+    }
+
     pub fn grid(&self) -> &Arc<DensityGrid> {
         &self.grid
     }
@@ -317,6 +347,13 @@ impl Medium {
         (self.rho * seg.max_density).min(self.sigma_cap)
     }
 
+    /// The control extinction of a majorant segment: sigma_t is at least this at every
+    /// point of it (capped like sigma_t, so at most [`Medium::sigma_maj`]).
+    #[inline]
+    pub fn sigma_min(&self, seg: &MajorantSegment) -> f32 {
+        (self.rho * seg.min_density).min(self.sigma_cap)
+    }
+
     /// The tracking loop: walks the majorant segments of `o + t d` (d unit length),
     /// samples tentative collisions with the local majorant, and calls
     /// `f(t, p, sigma_t(p), sigma_maj, rng)` at each one. `f` returns false to stop.
@@ -351,20 +388,51 @@ impl Medium {
         true
     }
 
-    /// Free-flight sampling by delta tracking: the distance to the next real
-    /// collision, distributed as sigma_t(t) T(t).
+    /// Free-flight sampling: the distance to the next real collision, distributed as
+    /// sigma_t(t) T(t). Decomposition tracking (Kutz et al. 2017): in each majorant
+    /// segment the medium is a homogeneous control part, sigma_c = [`Medium::sigma_min`],
+    /// plus a residual; a collision with the control part is drawn in closed form
+    /// (no density lookup), the residual's by delta tracking against sigma_maj -
+    /// sigma_c up to it, and the first of the two is the collision. A homogeneous
+    /// segment takes no lookup at all; where sigma_c = 0 this is delta tracking, with
+    /// the same random numbers.
     #[inline]
     pub fn sample_free_flight(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> FreeFlight {
-        let mut hit = FreeFlight::Escaped;
-        self.sample_t_maj(o, d, t_max, rng, |t, _p, sigma_t, sigma_maj, rng| {
-            if rng.uniform() * sigma_maj < sigma_t {
-                hit = FreeFlight::Collision { t };
-                false
-            } else {
-                true
+        for seg in self.majorant.segments(o, d, 0.0, t_max) {
+            let sigma_maj = self.sigma_maj(&seg);
+            if sigma_maj <= 0.0 {
+                continue;
             }
-        });
-        hit
+            let sigma_c = self.sigma_min(&seg);
+            let t_control =
+                if sigma_c > 0.0 { seg.t_min + sample_exponential(rng.uniform(), sigma_c) } else { f32::INFINITY };
+            let end = seg.t_max.min(t_control);
+            let sigma_r = sigma_maj - sigma_c;
+            if sigma_r > 0.0 {
+                let mut t = seg.t_min;
+                loop {
+                    let next = t + sample_exponential(rng.uniform(), sigma_r);
+                    // A step below the float spacing at t would not move: take one
+                    // spacing (far from the origin, with a capped but large majorant).
+                    t = if next > t { next } else { t.next_up() };
+                    if t >= end {
+                        break;
+                    }
+                    let sigma_t = self.sigma_t(o + d * t);
+                    debug_assert!(
+                        sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6,
+                        "majorant {sigma_maj} < sigma_t {sigma_t}"
+                    );
+                    if rng.uniform() * sigma_r < sigma_t - sigma_c {
+                        return FreeFlight::Collision { t };
+                    }
+                }
+            }
+            if t_control < seg.t_max {
+                return FreeFlight::Collision { t: t_control };
+            }
+        }
+        FreeFlight::Escaped
     }
 
     /// One step of a random walk: at a scattering vertex `x` whose path came from
@@ -382,22 +450,55 @@ impl Medium {
         }
     }
 
-    /// Transmittance estimate by ratio tracking (Novak et al. 2014), with Russian
-    /// roulette once the running product falls below a threshold. Unbiased.
+    /// Transmittance estimate by residual ratio tracking (Novak et al. 2014): in each
+    /// majorant segment the control part sigma_c = [`Medium::sigma_min`] is attenuated
+    /// in closed form, exp(-sigma_c length), and the residual sigma_t - sigma_c is
+    /// ratio-tracked against sigma_maj - sigma_c; Russian roulette once the running
+    /// product falls below a threshold. Unbiased; a homogeneous segment adds no
+    /// variance and takes no lookup. Where sigma_c = 0 this is ratio tracking, with the
+    /// same random numbers.
     #[inline]
     pub fn transmittance_ratio(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> f32 {
         let mut tr = 1.0f32;
-        self.sample_t_maj(o, d, t_max, rng, |_t, _p, sigma_t, sigma_maj, rng| {
-            tr *= 1.0 - sigma_t / sigma_maj;
-            if tr < RATIO_TRACKING_RR_THRESHOLD {
-                if rng.uniform() < 0.5 {
-                    tr = 0.0;
-                    return false;
-                }
-                tr *= 2.0;
+        for seg in self.majorant.segments(o, d, 0.0, t_max) {
+            let sigma_maj = self.sigma_maj(&seg);
+            if sigma_maj <= 0.0 {
+                continue;
             }
-            true
-        });
+            let sigma_c = self.sigma_min(&seg);
+            if sigma_c > 0.0 {
+                tr *= (-sigma_c * (seg.t_max - seg.t_min)).exp();
+                // Roulette with survival tr / threshold: a product far below the
+                // threshold (a long homogeneous stretch) ends here at once.
+                if tr < RATIO_TRACKING_RR_THRESHOLD {
+                    if rng.uniform() * RATIO_TRACKING_RR_THRESHOLD >= tr {
+                        return 0.0;
+                    }
+                    tr = RATIO_TRACKING_RR_THRESHOLD;
+                }
+            }
+            let sigma_r = sigma_maj - sigma_c;
+            if sigma_r <= 0.0 {
+                continue;
+            }
+            let mut t = seg.t_min;
+            loop {
+                let next = t + sample_exponential(rng.uniform(), sigma_r);
+                t = if next > t { next } else { t.next_up() };
+                if t >= seg.t_max {
+                    break;
+                }
+                let sigma_t = self.sigma_t(o + d * t);
+                debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
+                tr *= 1.0 - (sigma_t - sigma_c) / sigma_r;
+                if tr < RATIO_TRACKING_RR_THRESHOLD {
+                    if rng.uniform() < 0.5 {
+                        return 0.0;
+                    }
+                    tr *= 2.0;
+                }
+            }
+        }
         tr
     }
 
@@ -558,6 +659,44 @@ mod tests {
                 let c =
                     ((p - m.bounds.min) * m.inv_cell_size).floor().as_ivec3().clamp(IVec3::ZERO, m.dims.as_ivec3() - 1);
                 assert!(g.lookup(p) <= m.cell(c) + 1e-6, "cells={cells} sparse={} p={p}", g.is_sparse());
+            }
+        }
+    }
+
+    /// The cells' minima bound the interpolated density from below everywhere in
+    /// the cell (the trackers' control density must never exceed it), sparse storage
+    /// gives the same minima as dense, and a smooth positive cloud has cells with a
+    /// positive minimum in its interior and 0 where the footprint leaves the grid.
+    #[test]
+    fn minima_bound_density_from_below() {
+        let smooth =
+            DensityGrid::from_fn(UVec3::new(40, 33, 24), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)), |p| {
+                0.5 + 0.3 * (7.0 * p.x).sin() * (5.0 * p.y).cos() + 0.2 * p.z
+            })
+            .unwrap();
+        for dense in [random_grid(23, 4), smooth] {
+            let sparse = dense.to_sparse();
+            for cells in [2, 4, 8] {
+                let (a, b) = (MajorantGrid::new(&dense, cells), MajorantGrid::new(&sparse, cells));
+                assert_eq!(a.min_density, b.min_density, "cells {cells}");
+                let positive = a.min_density.iter().filter(|m| **m > 0.0).count();
+                let mut rng = Rng::new(31, cells as u64, 0);
+                for _ in 0..20_000 {
+                    let p = a.bounds.min + Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * a.bounds.extent();
+                    let c = ((p - a.bounds.min) * a.inv_cell_size)
+                        .floor()
+                        .as_ivec3()
+                        .clamp(IVec3::ZERO, a.dims.as_ivec3() - 1);
+                    let (lo, hi) = (a.min_density[a.cell_index(c)], a.cell(c));
+                    assert!(lo <= dense.lookup(p) && lo <= sparse.lookup(p), "cells {cells} at {p}: min {lo}");
+                    assert!(lo <= hi);
+                }
+                if dense.min_in_box(UVec3::ZERO, dense.dims() - 1) > 0.0 {
+                    assert!(positive > 0, "cells {cells}: no positive minimum in a positive cloud");
+                    // Cells whose footprint reaches past the grid taper to zero.
+                    assert_eq!(a.min_density[0], 0.0);
+                    assert_eq!(*a.min_density.last().unwrap(), 0.0);
+                }
             }
         }
     }

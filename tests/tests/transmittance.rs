@@ -87,7 +87,92 @@ fn cases() -> Vec<Case> {
             });
         }
     }
+    // The same ramp finer along y: its interior cells have a positive minimum, so the
+    // trackers handle that part in closed form (a control density) and track the rest.
+    let (rho, o, d) = (4.0f32, Vec3::new(0.1, -0.45, 0.2), Vec3::Y);
+    let fine = Arc::new(ramp_grid(64, a0, b0));
+    for (name, grid) in [("fine ramp", fine.clone()), ("fine ramp, sparse", Arc::new(fine.to_sparse()))] {
+        let (y0, y1) = (o.y as f64, o.y as f64 + 0.9);
+        let tau = rho as f64 * (a0 as f64 * (y1 - y0) + 0.5 * b0 as f64 * (y1 * y1 - y0 * y0));
+        let medium = Medium::new(grid, rho, 1.0, PhaseFunction::Isotropic).unwrap();
+        out.push(Case { name, medium, o, d, t_max: 0.9, tau, march_tol: 1e-4 * tau });
+    }
     out
+}
+
+/// The fine ramp has cells with a positive control density along the cases' rays
+/// (else those cases would not exercise it).
+#[test]
+fn fine_ramp_cases_have_a_control_density() {
+    for c in cases().iter().filter(|c| c.name.starts_with("fine ramp")) {
+        let segs: Vec<_> = c.medium.majorant().segments(c.o, c.d, 0.0, c.t_max).collect();
+        let covered: f32 =
+            segs.iter().filter(|s| s.min_density > 0.0).map(|s| s.t_max - s.t_min).sum::<f32>() / c.t_max;
+        assert!(covered > 0.5, "{}: {covered} of the ray has a control density", c.name);
+    }
+}
+
+/// Through homogeneous interior cells the control density is the whole medium: the
+/// transmittance comes out in closed form, the same value every time.
+#[test]
+fn homogeneous_cells_give_exact_transmittance() {
+    // 64 voxels over 4 units: cells of 8 voxels, the interior ones y in [-1.53, 1.97].
+    let slab = Arc::new(slab_grid(64, 4.0));
+    for grid in [slab.clone(), Arc::new(slab.to_sparse())] {
+        let medium = Medium::new(grid, 0.5, 1.0, PhaseFunction::Isotropic).unwrap();
+        let (o, l) = (Vec3::new(0.1, -1.4, 0.2), 2.8f32);
+        let exact = (-0.5 * l as f64).exp();
+        let mut rng = Rng::new(9, 0, 0);
+        for _ in 0..1000 {
+            let t = medium.transmittance_ratio(o, Vec3::Y, l, &mut rng) as f64;
+            assert!((t - exact).abs() < 1e-5, "{t} vs {exact}");
+        }
+        // Without the control the same estimator is binary here.
+        let plain = medium.clone().without_control();
+        let zeros = (0..1000).filter(|_| plain.transmittance_ratio(o, Vec3::Y, l, &mut rng) == 0.0).count();
+        assert!(zeros > 500, "{zeros} of 1000 plain estimates were 0");
+    }
+}
+
+/// Free-flight distances where the medium is part control, part tracked residual
+/// (the fine ramp, d(y) = 0.5 + 0.8 y, straight up), dense and sparse storage with
+/// their own random streams: chi-square against the closed form F(t) = 1 -
+/// exp(-tau(t)) over 50 equal-probability bins on [0, L] and one for "beyond L", at a
+/// family-wise alpha of 0.01 over the two (Sidak).
+#[test]
+fn free_flight_distances_follow_the_ramp() {
+    let (a0, b0, rho) = (0.5f64, 0.8f64, 4.0f32);
+    let grid = Arc::new(ramp_grid(64, a0 as f32, b0 as f32));
+    let alpha = 1.0 - 0.99f64.powf(0.5);
+    for (stream, medium) in [
+        Medium::new(grid.clone(), rho, 1.0, PhaseFunction::Isotropic).unwrap(),
+        Medium::new(Arc::new(grid.to_sparse()), rho, 1.0, PhaseFunction::Isotropic).unwrap(),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let (o, l) = (Vec3::new(0.1, -0.45, 0.2), 0.9f64);
+        let y0 = o.y as f64;
+        let tau = |t: f64| rho as f64 * (a0 * t + 0.5 * b0 * ((y0 + t).powi(2) - y0 * y0));
+        let f_l = 1.0 - (-tau(l)).exp();
+        let bins = 50usize;
+        let mut obs = vec![0.0f64; bins + 1];
+        let mut rng = Rng::new(17, stream as u64, 0);
+        let n = 1_000_000;
+        for _ in 0..n {
+            match medium.sample_free_flight(o, Vec3::Y, f32::INFINITY, &mut rng) {
+                FreeFlight::Collision { t } if (t as f64) < l => {
+                    let b = ((1.0 - (-tau(t as f64)).exp()) / f_l * bins as f64) as usize;
+                    obs[b.min(bins - 1)] += 1.0;
+                }
+                _ => obs[bins] += 1.0,
+            }
+        }
+        let mut exp = vec![n as f64 * f_l / bins as f64; bins + 1];
+        exp[bins] = n as f64 * (1.0 - f_l);
+        let r = chi2_test(&obs, &exp, 5.0);
+        assert!(r.p_value > alpha, "stream {stream}: {r:?}");
+    }
 }
 
 #[test]

@@ -39,6 +39,10 @@ pub struct BenchRenderArgs {
     /// lookups, same majorants, same images).
     #[arg(long)]
     pub compare_sparse: bool,
+    /// Also render the first configuration without the trackers' control density
+    /// (plain delta and ratio tracking: the same estimate, other variance and cost).
+    #[arg(long)]
+    pub compare_control: bool,
     /// Render every configuration this many times, alternating, and report medians.
     #[arg(long, default_value_t = 1)]
     pub rounds: u32,
@@ -224,10 +228,17 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                     file.phase(),
                     c,
                 )?;
-                let scene = Arc::new(engine::Scene { medium, ..base_scene.clone() });
                 let label = format!("{res}^3 {} cells {c}", if g.is_sparse() { "sparse" } else { "dense" });
                 let mut info = info.clone();
                 info["majorant_cells"] = c.into();
+                if configs.is_empty() && args.compare_control {
+                    let scene =
+                        Arc::new(engine::Scene { medium: medium.clone().without_control(), ..base_scene.clone() });
+                    let mut info = info.clone();
+                    info["control"] = false.into();
+                    configs.push(Config { label: format!("{label} no control"), scene, info, runs: Vec::new() });
+                }
+                let scene = Arc::new(engine::Scene { medium, ..base_scene.clone() });
                 configs.push(Config { label, scene, info, runs: Vec::new() });
             }
         }
