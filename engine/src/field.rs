@@ -21,10 +21,10 @@
 //! while it is built. Parameters: `max_nodes` per axis, >= 2. Memory: 4 bytes per
 //! node.
 
+use crate::control::Cancel;
 use crate::grid::Bounds3;
 use crate::light::Sun;
 use crate::medium::Medium;
-use crate::render::Cancel;
 use glam::{UVec3, Vec3};
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -437,7 +437,7 @@ mod tests {
     /// skipped columns meanwhile (here: requested before it began).
     #[test]
     fn a_cancelled_sun_field_is_not_built() {
-        use crate::render::RenderControl;
+        use crate::control::RenderControl;
         let m = blob();
         let sun = Sun::new(Vec3::new(0.3, -1.0, 0.2), Vec3::ONE, 0.0).unwrap();
         let control = RenderControl::new();

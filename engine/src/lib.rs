@@ -13,6 +13,7 @@
 //! tiles and passes).
 
 pub mod camera;
+pub mod control;
 pub mod field;
 pub mod film;
 pub mod grid;
@@ -28,6 +29,7 @@ pub mod scene;
 pub mod stats;
 
 pub use camera::Camera;
+pub use control::{Cancel, RenderControl};
 pub use film::{Buffer, Film};
 pub use grid::{Bounds3, DensityGrid, GridError, SparseBuilder};
 pub use integrator::bdpt::BdptSettings;
@@ -36,6 +38,6 @@ pub use light::{Sky, Sun};
 pub use medium::{FreeFlight, Medium};
 pub use phase::PhaseFunction;
 pub use predictor::{InScatterPredictor, P2pQuery, TransportPredictor};
-pub use render::{Cancel, PassOutcome, RenderControl, Renderer};
+pub use render::{PassOutcome, Renderer};
 pub use rng::Rng;
 pub use scene::Scene;

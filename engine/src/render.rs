@@ -8,6 +8,7 @@
 //! bounds that time whatever the grid holds. The film sits behind a lock that is only held while a
 //! finished pass is added, so other threads can take a snapshot at any time.
 
+use crate::control::RenderControl;
 use crate::film::Film;
 use crate::integrator::base::PathSample;
 use crate::integrator::{Integrator, IntegratorError};
@@ -15,7 +16,6 @@ use crate::rng::Rng;
 use crate::scene::Scene;
 use glam::Vec2;
 use rayon::prelude::*;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 
 /// Edge length of a square tile, in pixels.
@@ -24,64 +24,6 @@ pub const TILE_SIZE: u32 = 16;
 /// The stream family of the preview's per-pixel rotations of its pass sequence:
 /// above every pass index (< 2^32) and apart from BDPT's light pools.
 pub const PREVIEW_SHIFT: u64 = 0x4841_4c54 << 32; // "HALT"
-
-/// Shared between the thread that changes things and the threads that render: a
-/// generation counter that every scene change bumps, and a stop flag.
-#[derive(Debug, Default)]
-pub struct RenderControl {
-    generation: AtomicU64,
-    stop: AtomicBool,
-}
-
-impl RenderControl {
-    pub fn new() -> Self {
-        Self::default()
-    }
-    pub fn generation(&self) -> u64 {
-        self.generation.load(Ordering::Acquire)
-    }
-    /// Invalidates the pass under way; returns the new generation.
-    pub fn bump(&self) -> u64 {
-        self.generation.fetch_add(1, Ordering::AcqRel) + 1
-    }
-    pub fn request_stop(&self) {
-        self.stop.store(true, Ordering::Release);
-    }
-    pub fn clear_stop(&self) {
-        self.stop.store(false, Ordering::Release);
-    }
-    pub fn stop_requested(&self) -> bool {
-        self.stop.load(Ordering::Acquire)
-    }
-    /// True if a pass started in `generation` must stop.
-    #[inline]
-    pub fn should_abort(&self, generation: u64) -> bool {
-        self.stop_requested() || self.generation() != generation
-    }
-}
-
-/// Lets set-up work that takes longer than a frame (fields built per cloud and sun)
-/// give up when the render it is for has been superseded: a [`RenderControl`] and the
-/// generation the work belongs to, as a pass checks them. [`Cancel::NEVER`] is work
-/// that always finishes.
-#[derive(Clone, Copy, Debug)]
-pub struct Cancel<'a>(Option<(&'a RenderControl, u64)>);
-
-impl<'a> Cancel<'a> {
-    /// Never cancelled.
-    pub const NEVER: Cancel<'static> = Cancel(None);
-
-    /// Cancelled when `control` moves past `generation` or a stop is requested.
-    pub fn on(control: &'a RenderControl, generation: u64) -> Self {
-        Cancel(Some((control, generation)))
-    }
-
-    /// Whether the work should stop now.
-    #[inline]
-    pub fn requested(&self) -> bool {
-        self.0.is_some_and(|(c, g)| c.should_abort(g))
-    }
-}
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PassOutcome {
