@@ -324,6 +324,81 @@ impl SunTransmittance {
         trilinear(&self.tau, UVec3::new(self.n.z, self.n.x, self.n.y), Vec3::new(q.z, q.x, q.y))
     }
 
+    /// [`SunTransmittance::optical_depth`] at every point of `pts` into `out`, eight
+    /// at a time where the CPU has AVX2 (the same bits either way: the same operations
+    /// in the same order, no fused multiply-adds).
+    pub fn optical_depth_many(&self, pts: &[Vec3], out: &mut [f32]) {
+        assert_eq!(pts.len(), out.len(), "one output per point");
+        #[cfg(target_arch = "x86_64")]
+        if self.tau.len() < i32::MAX as usize && std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 is present (checked just now); node indices fit 32 bits.
+            return unsafe { self.optical_depth_many_avx2(pts, out) };
+        }
+        for (o, p) in out.iter_mut().zip(pts) {
+            *o = self.optical_depth(*p);
+        }
+    }
+
+    /// [`SunTransmittance::optical_depth_many`] with AVX2: each lane transforms its
+    /// point into the light frame, locates its cell as [`trilinear`] does and gathers
+    /// the eight corners.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn optical_depth_many_avx2(&self, pts: &[Vec3], out: &mut [f32]) {
+        use std::arch::x86_64::*;
+        let full = pts.len() / 8 * 8;
+        // The lattice as trilinear sees it: axes (w, u, v), w fastest.
+        let n = UVec3::new(self.n.z, self.n.x, self.n.y);
+        let (sy, sz) = (n.x as i32, (n.x * n.y) as i32);
+        let top = (n - UVec3::ONE).as_vec3();
+        let cap = (n - UVec3::splat(2)).as_ivec3();
+        let s = |v: f32| _mm256_set1_ps(v);
+        let frame = [self.u, self.v, self.w];
+        let (zero, tau) = (_mm256_setzero_ps(), self.tau.as_ptr());
+        let mut i = 0;
+        while i < full {
+            let lane = |k: usize| -> [f32; 8] { std::array::from_fn(|j| pts[i + j][k]) };
+            // SAFETY: plain loads of stack arrays.
+            let (x, y, z) = unsafe {
+                let (a, b, c) = (lane(0), lane(1), lane(2));
+                (_mm256_loadu_ps(a.as_ptr()), _mm256_loadu_ps(b.as_ptr()), _mm256_loadu_ps(c.as_ptr()))
+            };
+            // x.dot(u) etc. as glam adds them: (x ux + y uy) + z uz.
+            let dot = |a: Vec3| {
+                _mm256_add_ps(
+                    _mm256_add_ps(_mm256_mul_ps(x, s(a.x)), _mm256_mul_ps(y, s(a.y))),
+                    _mm256_mul_ps(z, s(a.z)),
+                )
+            };
+            let q =
+                [0, 1, 2].map(|k| _mm256_mul_ps(_mm256_sub_ps(dot(frame[k]), s(self.min[k])), s(self.inv_spacing[k])));
+            // Reordered to (w, u, v), clamped to the lattice (glam's max then min).
+            let q = [q[2], q[0], q[1]];
+            let q = [0, 1, 2].map(|k| _mm256_min_ps(_mm256_max_ps(q[k], zero), s(top[k])));
+            let i0 = [0, 1, 2].map(|k| _mm256_min_epi32(_mm256_cvttps_epi32(q[k]), _mm256_set1_epi32(cap[k])));
+            let f = [0, 1, 2].map(|k| _mm256_sub_ps(q[k], _mm256_cvtepi32_ps(i0[k])));
+            let base = _mm256_add_epi32(
+                _mm256_add_epi32(i0[0], _mm256_mullo_epi32(i0[1], _mm256_set1_epi32(sy))),
+                _mm256_mullo_epi32(i0[2], _mm256_set1_epi32(sz)),
+            );
+            // SAFETY: every index is a corner of a cell inside the lattice (< tau.len()).
+            let at =
+                |off: i32| unsafe { _mm256_i32gather_ps::<4>(tau, _mm256_add_epi32(base, _mm256_set1_epi32(off))) };
+            let lerp = |a: __m256, b: __m256, t: __m256| _mm256_add_ps(a, _mm256_mul_ps(_mm256_sub_ps(b, a), t));
+            let c00 = lerp(at(0), at(1), f[0]);
+            let c10 = lerp(at(sy), at(sy + 1), f[0]);
+            let c01 = lerp(at(sz), at(sz + 1), f[0]);
+            let c11 = lerp(at(sz + sy), at(sz + sy + 1), f[0]);
+            let r = lerp(lerp(c00, c10, f[1]), lerp(c01, c11, f[1]), f[2]);
+            // SAFETY: i + 8 <= full <= out.len().
+            unsafe { _mm256_storeu_ps(out.as_mut_ptr().add(i), r) };
+            i += 8;
+        }
+        for (o, p) in out[full..].iter_mut().zip(&pts[full..]) {
+            *o = self.optical_depth(*p);
+        }
+    }
+
     /// Transmittance toward the sun at `x`.
     #[inline]
     pub fn at(&self, x: Vec3) -> f32 {
@@ -454,6 +529,25 @@ mod tests {
         let sweep = |c| optical_depth_sweep(&m, m.grid().support_bounds(), nodes, spacing, Vec3::Y, c);
         assert!(sweep(Cancel::on(&control, g)).is_none());
         assert!(sweep(Cancel::NEVER).is_some());
+    }
+
+    /// The many-point lookup gives the single lookup's bits (AVX2 or not), inside the
+    /// lattice, outside it (clamped) and for NaN, for chunks of eight and a tail.
+    #[test]
+    fn many_sun_lookups_match_single_ones() {
+        let m = blob();
+        let sun = Sun::new(Vec3::new(0.4, -0.8, 0.3), Vec3::ONE, 0.0).unwrap();
+        let field = SunTransmittance::build(&m, &sun, 48);
+        let mut rng = crate::rng::Rng::new(3, 0, 0);
+        let mut pts: Vec<Vec3> =
+            (0..203).map(|_| (Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5) * 1.6).collect();
+        pts[5] = Vec3::splat(f32::NAN);
+        pts[6] = Vec3::new(9.0, -9.0, 0.0);
+        let mut out = vec![0.0f32; pts.len()];
+        field.optical_depth_many(&pts, &mut out);
+        for (o, p) in out.iter().zip(&pts) {
+            assert_eq!(o.to_bits(), field.optical_depth(*p).to_bits(), "at {p}");
+        }
     }
 
     /// Voxels of the largest float are capped in the slice sweep as in sigma_t: its
