@@ -507,9 +507,8 @@ mod tests {
     }
 
     /// A sun field for a superseded generation, or with a stop requested, is not
-    /// built; for the current generation it is the uncancellable build's, bit for bit.
-    /// A stop requested and cleared again still yields nothing from a build that
-    /// skipped columns meanwhile (here: requested before it began).
+    /// built; for the current generation it is the uncancellable build's, bit for bit;
+    /// the slice sweep likewise.
     #[test]
     fn a_cancelled_sun_field_is_not_built() {
         use crate::control::RenderControl;

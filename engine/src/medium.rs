@@ -1,12 +1,15 @@
-//! The heterogeneous medium: sigma_t(x) = rho * d(x), a majorant grid traversed by a
-//! 3D DDA, and the three ways to get at transmittance along a ray:
-//! delta (Woodcock) tracking for free flights, ratio tracking for shadow rays, and
-//! deterministic ray marching for the optical depth the learned model's features use.
+//! The heterogeneous medium: sigma_t(x) = rho * d(x), a majorant grid (each cell's
+//! largest and smallest density) traversed by a 3D DDA, and the three ways to get at
+//! transmittance along a ray: delta tracking for free flights (decomposition tracking
+//! where a cell has a positive minimum), ratio tracking for shadow rays (residual
+//! ratio tracking there), and deterministic ray marching for the optical depth the
+//! learned model's features use.
 //!
 //! A medium answers two questions (pbrt-v4 `SamplePoint` / `SampleRay`): the
-//! coefficients at a point, and the majorant segments along a ray. One tracking
-//! loop, [`Medium::sample_t_maj`], calls back at every tentative collision; the
-//! callers decide absorb, scatter or null.
+//! coefficients at a point, and the majorant segments along a ray. Within a segment
+//! the trackers draw tentative collisions at a constant rate ([`tentative_collisions`]);
+//! [`Medium::sample_t_maj`] offers the plain loop (every tentative collision against
+//! the majorant) to callers that decide absorb, scatter or null themselves.
 //!
 //! Parameters ([`Medium::with_majorant_cells`]): `rho` the density scale, per world
 //! unit, finite and >= 0 (sigma_t = rho d); `albedo` in [0, 1] (sigma_s = albedo
@@ -230,6 +233,31 @@ impl Iterator for MajorantIter<'_> {
     }
 }
 
+/// Tentative collisions at rate `sigma` (> 0) after `t`, up to `end`: calls `f(t, rng)`
+/// at each until it returns false. Returns false if `f` stopped the walk, true if it
+/// reached `end`. Each step draws one uniform number.
+#[inline(always)]
+pub fn tentative_collisions(
+    mut t: f32,
+    end: f32,
+    sigma: f32,
+    rng: &mut Rng,
+    mut f: impl FnMut(f32, &mut Rng) -> bool,
+) -> bool {
+    loop {
+        let next = t + sample_exponential(rng.uniform(), sigma);
+        // A step below the float spacing at t would not move: take one spacing (far
+        // from the origin, with a capped but large majorant).
+        t = if next > t { next } else { t.next_up() };
+        if t >= end {
+            return true;
+        }
+        if !f(t, rng) {
+            return false;
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum MediumError {
     #[error("density scale rho must be finite and >= 0, got {0}")]
@@ -348,7 +376,12 @@ impl Medium {
     }
 
     /// The control extinction of a majorant segment: sigma_t is at least this at every
-    /// point of it (capped like sigma_t, so at most [`Medium::sigma_maj`]).
+    /// point of it (capped like sigma_t, so at most [`Medium::sigma_maj`]), up to
+    /// rounding: an interpolation between corners of very different values, or a DDA
+    /// step that drifts a fraction of a voxel past a cell face, can read a few units in
+    /// the last place below it. The trackers tolerate that (a residual a hair below 0
+    /// is no collision, a ratio a hair above 1), as they tolerate the majorant's
+    /// rounding above.
     #[inline]
     pub fn sigma_min(&self, seg: &MajorantSegment) -> f32 {
         (self.rho * seg.min_density).min(self.sigma_cap)
@@ -368,21 +401,14 @@ impl Medium {
             if sigma_maj <= 0.0 {
                 continue;
             }
-            let mut t = seg.t_min;
-            loop {
-                let next = t + sample_exponential(rng.uniform(), sigma_maj);
-                // A step below the float spacing at t would not move: take one spacing
-                // (far from the origin, with a capped but large majorant).
-                t = if next > t { next } else { t.next_up() };
-                if t >= seg.t_max {
-                    break;
-                }
+            let going = tentative_collisions(seg.t_min, seg.t_max, sigma_maj, rng, |t, rng| {
                 let p = o + d * t;
                 let sigma_t = self.sigma_t(p);
                 debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
-                if !f(t, p, sigma_t, sigma_maj, rng) {
-                    return false;
-                }
+                f(t, p, sigma_t, sigma_maj, rng)
+            });
+            if !going {
+                return false;
             }
         }
         true
@@ -409,23 +435,21 @@ impl Medium {
             let end = seg.t_max.min(t_control);
             let sigma_r = sigma_maj - sigma_c;
             if sigma_r > 0.0 {
-                let mut t = seg.t_min;
-                loop {
-                    let next = t + sample_exponential(rng.uniform(), sigma_r);
-                    // A step below the float spacing at t would not move: take one
-                    // spacing (far from the origin, with a capped but large majorant).
-                    t = if next > t { next } else { t.next_up() };
-                    if t >= end {
-                        break;
-                    }
+                let mut hit = None;
+                tentative_collisions(seg.t_min, end, sigma_r, rng, |t, rng| {
                     let sigma_t = self.sigma_t(o + d * t);
                     debug_assert!(
                         sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6,
                         "majorant {sigma_maj} < sigma_t {sigma_t}"
                     );
-                    if rng.uniform() * sigma_r < sigma_t - sigma_c {
-                        return FreeFlight::Collision { t };
+                    let real = rng.uniform() * sigma_r < sigma_t - sigma_c;
+                    if real {
+                        hit = Some(t);
                     }
+                    !real
+                });
+                if let Some(t) = hit {
+                    return FreeFlight::Collision { t };
                 }
             }
             if t_control < seg.t_max {
@@ -481,22 +505,20 @@ impl Medium {
             if sigma_r <= 0.0 {
                 continue;
             }
-            let mut t = seg.t_min;
-            loop {
-                let next = t + sample_exponential(rng.uniform(), sigma_r);
-                t = if next > t { next } else { t.next_up() };
-                if t >= seg.t_max {
-                    break;
-                }
+            let alive = tentative_collisions(seg.t_min, seg.t_max, sigma_r, rng, |t, rng| {
                 let sigma_t = self.sigma_t(o + d * t);
                 debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
                 tr *= 1.0 - (sigma_t - sigma_c) / sigma_r;
                 if tr < RATIO_TRACKING_RR_THRESHOLD {
                     if rng.uniform() < 0.5 {
-                        return 0.0;
+                        return false;
                     }
                     tr *= 2.0;
                 }
+                true
+            });
+            if !alive {
+                return 0.0;
             }
         }
         tr
@@ -669,12 +691,25 @@ mod tests {
     /// positive minimum in its interior and 0 where the footprint leaves the grid.
     #[test]
     fn minima_bound_density_from_below() {
-        let smooth =
-            DensityGrid::from_fn(UVec3::new(40, 33, 24), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)), |p| {
-                0.5 + 0.3 * (7.0 * p.x).sin() * (5.0 * p.y).cos() + 0.2 * p.z
-            })
-            .unwrap();
-        for dense in [random_grid(23, 4), smooth] {
+        let unit = Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5));
+        let smooth = DensityGrid::from_fn(UVec3::new(40, 33, 24), unit, |p| {
+            0.5 + 0.3 * (7.0 * p.x).sin() * (5.0 * p.y).cos() + 0.2 * p.z
+        })
+        .unwrap();
+        // Random values without zeros: every interior minimum positive and different.
+        let mut rng = Rng::new(4, 0, 0);
+        let dims = UVec3::new(29, 23, 19);
+        let data = (0..dims.x * dims.y * dims.z).map(|_| 0.1 + rng.uniform()).collect();
+        let noisy = DensityGrid::from_bounds(dims, data, unit).unwrap();
+        // Blocks of 8^3 voxels of one value each (constant bricks of different values
+        // in sparse storage), with a varying layer through them.
+        let blocky = DensityGrid::from_fn(UVec3::splat(40), unit, |p| {
+            let b = ((p + 0.5) * 5.0).floor();
+            let v = 0.2 + 0.15 * (b.x + 2.0 * b.y + 3.0 * b.z).rem_euclid(5.0);
+            if p.y.abs() < 0.05 { v + 0.3 * (11.0 * p.x).sin().abs() } else { v }
+        })
+        .unwrap();
+        for dense in [random_grid(23, 4), smooth, noisy, blocky] {
             let sparse = dense.to_sparse();
             for cells in [2, 4, 8] {
                 let (a, b) = (MajorantGrid::new(&dense, cells), MajorantGrid::new(&sparse, cells));

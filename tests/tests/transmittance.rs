@@ -116,7 +116,7 @@ fn fine_ramp_cases_have_a_control_density() {
 /// transmittance comes out in closed form, the same value every time.
 #[test]
 fn homogeneous_cells_give_exact_transmittance() {
-    // 64 voxels over 4 units: cells of 8 voxels, the interior ones y in [-1.53, 1.97].
+    // 64 voxels over 4 units: cells of 8 voxels, the interior ones y in [-1.53, 1.47].
     let slab = Arc::new(slab_grid(64, 4.0));
     for grid in [slab.clone(), Arc::new(slab.to_sparse())] {
         let medium = Medium::new(grid, 0.5, 1.0, PhaseFunction::Isotropic).unwrap();

@@ -239,8 +239,9 @@ mod tests {
 
     /// A build for a generation still current gives the same bits as one that cannot
     /// be cancelled; one for a generation already superseded gives nothing; and one
-    /// superseded while it runs stops early (checked per slice of each sweep) instead
-    /// of finishing.
+    /// superseded a tenth of the way in gives nothing either (it stopped instead of
+    /// finishing: a finished build is returned).  How soon it stops is the window's
+    /// concern, measured by `nimbus bench latency`, not timed here.
     #[test]
     fn a_superseded_build_stops() {
         use engine::{Cancel, RenderControl};
@@ -259,15 +260,12 @@ mod tests {
 
         // Superseded a tenth of the way into the build, from another thread.
         let g = control.bump();
-        let t = std::time::Instant::now();
         let cut = std::thread::scope(|scope| {
             let build = scope.spawn(|| DepthField::for_light_until(&m, &dirs, omega_l, 64, Cancel::on(&control, g)));
             std::thread::sleep(std::time::Duration::from_secs_f64(0.1 * whole_secs));
             control.bump();
             build.join().unwrap()
         });
-        let secs = t.elapsed().as_secs_f64();
         assert!(cut.is_none(), "the build finished although superseded");
-        assert!(secs < 0.6 * whole_secs, "stopped after {secs:.3} s of a {whole_secs:.3} s build");
     }
 }
