@@ -813,7 +813,7 @@ impl SceneFile {
             Err(e) => return Ok(Err(e)),
         };
         // With a sun (checked above) None is a cancelled build.
-        let bound = model.bind_scene_until(scene, max_nodes, cancel).ok_or(SceneError::Cancelled)?;
+        let bound = model.bind_scene(scene, max_nodes, cancel).ok_or(SceneError::Cancelled)?;
         cache.bound.insert(0, (key, bound.clone()));
         cache.bound.truncate(PredictorCache::BINDINGS);
         Ok(Ok(bound))

@@ -111,6 +111,21 @@ impl Bricks {
         self.brick_slot(UVec3::new(x >> BRICK_LOG2, y >> BRICK_LOG2, z >> BRICK_LOG2))
     }
 
+    /// `pick` folded from `init` over the values of `slot` in the box `a ..= c` (voxel
+    /// indices within the brick).
+    fn fold_slot(&self, slot: usize, a: UVec3, c: UVec3, init: f32, pick: fn(f32, f32) -> f32) -> f32 {
+        let base = slot * BRICK_VOXELS;
+        let mut m = init;
+        for z in a.z..=c.z {
+            for y in a.y..=c.y {
+                for x in a.x..=c.x {
+                    m = pick(m, self.pool[base + (x + BRICK * (y + BRICK * z)) as usize]);
+                }
+            }
+        }
+        m
+    }
+
     #[inline(always)]
     fn voxel(&self, x: u32, y: u32, z: u32) -> f32 {
         let m = BRICK - 1;
@@ -338,15 +353,7 @@ impl DensityGrid {
             return 0.0;
         }
         let Storage::Sparse(br) = &self.storage else {
-            let mut m = 0.0f32;
-            for z in lo.z..=hi.z {
-                for y in lo.y..=hi.y {
-                    for x in lo.x..=hi.x {
-                        m = m.max(self.voxel(x, y, z));
-                    }
-                }
-            }
-            return m;
+            return self.fold_voxels(lo, hi, 0.0, f32::max);
         };
         let (b0, b1) = (lo / BRICK, hi / BRICK);
         let mut m = 0.0f32;
@@ -364,15 +371,7 @@ impl DensityGrid {
                         m = smax;
                         continue;
                     }
-                    let (a, c) = (lo.max(blo) - blo, hi.min(bhi) - blo);
-                    let base = slot * BRICK_VOXELS;
-                    for z in a.z..=c.z {
-                        for y in a.y..=c.y {
-                            for x in a.x..=c.x {
-                                m = m.max(br.pool[base + (x + BRICK * (y + BRICK * z)) as usize]);
-                            }
-                        }
-                    }
+                    m = br.fold_slot(slot, lo.max(blo) - blo, hi.min(bhi) - blo, m, f32::max);
                 }
             }
         }
@@ -387,17 +386,10 @@ impl DensityGrid {
         if lo.cmpgt(hi).any() {
             return 0.0;
         }
-        let mut m = f32::INFINITY;
         let Storage::Sparse(br) = &self.storage else {
-            for z in lo.z..=hi.z {
-                for y in lo.y..=hi.y {
-                    for x in lo.x..=hi.x {
-                        m = m.min(self.voxel(x, y, z));
-                    }
-                }
-            }
-            return m;
+            return self.fold_voxels(lo, hi, f32::INFINITY, f32::min);
         };
+        let mut m = f32::INFINITY;
         let (b0, b1) = (lo / BRICK, hi / BRICK);
         for bz in b0.z..=b1.z {
             for by in b0.y..=b1.y {
@@ -412,15 +404,21 @@ impl DensityGrid {
                         continue;
                     }
                     let blo = b * BRICK;
-                    let (a, c) = (lo.max(blo) - blo, hi.min(blo + (BRICK - 1)) - blo);
-                    let base = slot * BRICK_VOXELS;
-                    for z in a.z..=c.z {
-                        for y in a.y..=c.y {
-                            for x in a.x..=c.x {
-                                m = m.min(br.pool[base + (x + BRICK * (y + BRICK * z)) as usize]);
-                            }
-                        }
-                    }
+                    m = br.fold_slot(slot, lo.max(blo) - blo, hi.min(blo + (BRICK - 1)) - blo, m, f32::min);
+                }
+            }
+        }
+        m
+    }
+
+    /// `pick` (max or min) folded over the voxels of the box `lo ..= hi` from `init`,
+    /// voxel by voxel.
+    fn fold_voxels(&self, lo: UVec3, hi: UVec3, init: f32, pick: fn(f32, f32) -> f32) -> f32 {
+        let mut m = init;
+        for z in lo.z..=hi.z {
+            for y in lo.y..=hi.y {
+                for x in lo.x..=hi.x {
+                    m = pick(m, self.voxel(x, y, z));
                 }
             }
         }

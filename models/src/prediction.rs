@@ -82,12 +82,8 @@ impl PredictionModel {
     /// Binds the model to `medium` and `sun`: the fields its features read. The
     /// global model's depth field gets at most `max_nodes` nodes per axis (64 values a
     /// node); the cloud model's sun field, one value a node, twice as many (at most 256).
-    pub fn bind(&self, medium: &Medium, sun: &Sun, max_nodes: u32) -> Arc<dyn InScatterPredictor> {
-        self.bind_until(medium, sun, max_nodes, Cancel::NEVER).expect("never cancelled")
-    }
-
-    /// [`PredictionModel::bind`], or None when `cancel` asks to stop.
-    pub fn bind_until(
+    /// None when `cancel` asks to stop before the fields are built.
+    pub fn bind(
         &self,
         medium: &Medium,
         sun: &Sun,
@@ -109,18 +105,9 @@ impl PredictionModel {
     /// model also to every light direction ([`crate::global::SkyDepthField`] at half
     /// the nodes per axis), so that the integrator can predict the sky's high orders
     /// and sample the sun's disk. The cloud model answers its sun only.
-    /// None for a scene without a sun (prediction has nothing to answer for).
-    pub fn bind_scene(&self, scene: &Scene, max_nodes: u32) -> Option<Arc<dyn InScatterPredictor>> {
-        self.bind_scene_until(scene, max_nodes, Cancel::NEVER)
-    }
-
-    /// [`PredictionModel::bind_scene`], also None when `cancel` asks to stop.
-    pub fn bind_scene_until(
-        &self,
-        scene: &Scene,
-        max_nodes: u32,
-        cancel: Cancel,
-    ) -> Option<Arc<dyn InScatterPredictor>> {
+    /// None for a scene without a sun (prediction has nothing to answer for), or when
+    /// `cancel` asks to stop.
+    pub fn bind_scene(&self, scene: &Scene, max_nodes: u32, cancel: Cancel) -> Option<Arc<dyn InScatterPredictor>> {
         let sun = scene.sun.as_ref()?;
         Some(match self {
             PredictionModel::Global(m) if needs_other_lights(scene) => Arc::new(
@@ -132,7 +119,7 @@ impl PredictionModel {
                         cancel,
                     )?,
             ),
-            _ => self.bind_until(&scene.medium, sun, max_nodes, cancel)?,
+            _ => self.bind(&scene.medium, sun, max_nodes, cancel)?,
         })
     }
 }

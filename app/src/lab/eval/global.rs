@@ -348,7 +348,9 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             bound
                 .get_or_init(|| {
                     let t = Instant::now();
-                    let b = model.bind_scene(&scene, args.field_nodes).expect("evaluation scenes have a sun");
+                    let b = model
+                        .bind_scene(&scene, args.field_nodes, engine::Cancel::NEVER)
+                        .expect("evaluation scenes have a sun");
                     (b, t.elapsed().as_secs_f64())
                 })
                 .clone()
