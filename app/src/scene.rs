@@ -251,14 +251,15 @@ pub struct RenderDesc {
     /// `render.predictor`, compiled into nimbus.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub model: Option<String>,
-    /// The shipped model used when `render.model` is unset: "global" (the thesis's
-    /// global model, the default) or "cloud" (the cloud-aware model,
-    /// docs/cloud-model.md).
-    #[serde(skip_serializing_if = "is_global")]
+    /// The shipped model used when `render.model` is unset: "auto" (the default: the
+    /// cloud-aware model, docs/cloud-model.md, under a sun alone; the thesis's global
+    /// model under a sky or a soft sun, whose light the cloud-aware model does not
+    /// answer), "cloud" or "global".
+    #[serde(skip_serializing_if = "is_auto")]
     pub predictor: String,
     /// Light transport: "path" (unidirectional path tracing, the default) or "bdpt"
     /// (volumetric bidirectional path tracing with MIS). With mode = "predict",
-    /// "path" predicts at bounce k with the global model (thesis ch. 5) and "bdpt"
+    /// "path" predicts at bounce k with the model of `render.predictor` and "bdpt"
     /// predicts the transport between k-segment subpaths with the point-to-point
     /// model (thesis 6.4; the buffers then split at order 2k + 1).
     #[serde(skip_serializing_if = "is_path")]
@@ -279,7 +280,7 @@ pub struct RenderDesc {
     /// BDPT prediction. Default 8 (see engine::bdpt).
     #[serde(skip_serializing_if = "is_default_extension_samples")]
     pub extension_samples: u32,
-    /// The preview's higher orders: "learned" (the global model, `render.model`, on a
+    /// The preview's higher orders: "learned" (the model of prediction mode, on a
     /// lattice for the current sun and camera; the default) or "octaves" (Wrenninge
     /// et al. 2013).
     #[serde(skip_serializing_if = "is_learned")]
@@ -301,8 +302,8 @@ pub struct RenderDesc {
     pub octave_c: f32,
 }
 
-fn is_global(s: &str) -> bool {
-    s == "global"
+fn is_auto(s: &str) -> bool {
+    s == "auto"
 }
 
 fn is_learned(s: &str) -> bool {
@@ -349,7 +350,7 @@ impl Default for RenderDesc {
             mode: "reference".into(),
             p: 0.25,
             model: None,
-            predictor: "global".into(),
+            predictor: "auto".into(),
             integrator: "path".into(),
             p2p_model: None,
             r: engine::integrator::bdpt::Prediction::DEFAULT_R,
@@ -734,9 +735,12 @@ impl SceneFile {
         })
     }
 
-    /// The shipped model `render.predictor` names.
+    /// The shipped model `render.predictor` names, "auto" resolved for this scene's
+    /// sky and sun ([`PredictorKind::resolve`]): never `Auto`.
     pub fn predictor_kind(&self) -> PredictorKind {
-        PredictorKind::parse(&self.render.predictor).unwrap_or_default()
+        let kind = PredictorKind::parse(&self.render.predictor).unwrap_or_default();
+        let sky = self.build_sky().unwrap_or_else(|_| Sky::uniform(Vec3::ZERO));
+        kind.resolve(&sky, self.build_sun().ok().as_ref())
     }
 
     /// The model of prediction mode: `render.model`, else the shipped one of
@@ -829,7 +833,7 @@ impl SceneFile {
 
     /// The instant preview of `scene`: the sun's transmittance (reused from `cache`
     /// for the same cloud, rho and sun) and the higher orders by `render.preview`; the
-    /// learned ones use the global model bound with a depth field of at most
+    /// learned ones use the model of prediction mode bound with fields of at most
     /// `max_nodes` nodes per axis (cached as in prediction mode) on a lattice of
     /// `render.preview_nodes`. A model that cannot be loaded falls back to the octave
     /// approximation, with a warning.
@@ -1013,32 +1017,44 @@ mod tests {
 
     const MINIMAL: &str = "[grid]\nbuiltin = \"cumulus\"\nresolution = 16\n";
 
-    /// `render.predictor` picks the shipped model of prediction at bounce k: the
-    /// global one by default (and not written back), the cloud-aware one by name;
-    /// both predict multiple scattering only; a model file of either kind is taken by
-    /// its sidecar; an unknown name is refused.
+    /// `render.predictor` picks the shipped model of prediction at bounce k: by
+    /// default ("auto", not written back) the cloud-aware one under a sun alone and the
+    /// global one under a sky or a soft sun, whose light the cloud-aware model does not
+    /// answer; either by name; both predict multiple scattering only; a model file of
+    /// either kind is taken by its sidecar; an unknown name is refused.
     #[test]
     fn the_predictor_key_picks_the_shipped_model() {
         let text = format!("{MINIMAL}[render]\nmode = \"predict\"\n");
         let s = SceneFile::from_toml_str(&text, "t").unwrap();
-        assert_eq!(s.render.predictor, "global");
+        assert_eq!(s.render.predictor, "auto");
         assert!(!s.to_toml().contains("predictor"));
-        let scene = s.build_scene(None).unwrap();
         let name = |f: &SceneFile| {
+            let scene = f.build_scene(None).unwrap();
             let setup = f.integrator(&scene, 16).unwrap();
             assert!(setup.warning.is_none(), "{:?}", setup.warning);
             let p = setup.integrator.predictor().expect("a predictor");
             assert!(!p.predicts_single_scattering());
             p.name().to_string()
         };
-        assert!(name(&s).contains("global"), "{}", name(&s));
-        let mut cloud = s.clone();
+        assert!(name(&s).contains("cloud-aware"), "{}", name(&s));
+        let mut sky = s.clone();
+        sky.sky.radiance = Rgb::Grey(0.1);
+        assert_eq!(sky.predictor_kind(), PredictorKind::Global);
+        assert!(name(&sky).contains("global"), "{}", name(&sky));
+        let mut soft = s.clone();
+        soft.sun.angular_radius_deg = 5.0;
+        assert_eq!(soft.predictor_kind(), PredictorKind::Global);
+        let mut global = s.clone();
+        global.render.predictor = "global".into();
+        global.validate().unwrap();
+        assert!(name(&global).contains("global"), "{}", name(&global));
+        assert!(global.to_toml().contains("predictor = \"global\""));
+        let mut cloud = sky.clone();
         cloud.render.predictor = "cloud".into();
-        cloud.validate().unwrap();
+        assert_eq!(cloud.predictor_kind(), PredictorKind::Cloud);
         assert!(name(&cloud).contains("cloud-aware"), "{}", name(&cloud));
-        assert!(cloud.to_toml().contains("predictor = \"cloud\""));
         // The model file names its kind, whatever render.predictor says.
-        let mut file = s.clone();
+        let mut file = global.clone();
         file.render.model =
             Some(concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/models/cloud.safetensors").to_string());
         assert!(name(&file).contains("cloud-aware"), "{}", name(&file));

@@ -1,12 +1,14 @@
-//! The models that answer prediction at bounce k, behind one type: the thesis's
-//! global model (the default) and the cloud-aware model. A model file says which it is
+//! The models that answer prediction at bounce k, behind one type: the cloud-aware
+//! model (the default under a sun alone) and the thesis's global model (the default
+//! under a sky or a soft sun, which it answers and the cloud-aware model does not). A
+//! model file says which it is
 //! (its sidecar's `format`); binding one to a cloud and a sun gives the engine's
 //! [`InScatterPredictor`].
 
 use crate::cloud::{BoundCloudModel, CloudModel};
 use crate::global::model::ModelError;
 use crate::global::{BoundGlobalModel, GlobalModel};
-use engine::{Cancel, InScatterPredictor, Medium, Scene, Sun};
+use engine::{Cancel, InScatterPredictor, Medium, Scene, Sky, Sun};
 use std::path::Path;
 use std::sync::Arc;
 
@@ -14,18 +16,24 @@ use std::sync::Arc;
 /// command line.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum PredictorKind {
-    /// The cloud-aware model ([`crate::cloud`]).
-    Cloud,
-    /// The thesis's global model ([`crate::global`]), the default.
+    /// The cloud-aware model where it answers every light of the scene (a sun alone,
+    /// no softer than the global model's sun field), else the global model
+    /// ([`PredictorKind::resolve`]); the default.
     #[default]
+    Auto,
+    /// The cloud-aware model ([`crate::cloud`]): bound to one sun direction, it leaves
+    /// a sky's orders >= k out.
+    Cloud,
+    /// The thesis's global model ([`crate::global`]).
     Global,
 }
 
 impl PredictorKind {
-    pub const NAMES: &'static str = "global, cloud";
+    pub const NAMES: &'static str = "auto, cloud, global";
 
     pub fn parse(s: &str) -> Option<Self> {
         match s {
+            "auto" => Some(PredictorKind::Auto),
             "cloud" => Some(PredictorKind::Cloud),
             "global" => Some(PredictorKind::Global),
             _ => None,
@@ -34,8 +42,21 @@ impl PredictorKind {
 
     pub fn name(self) -> &'static str {
         match self {
+            PredictorKind::Auto => "auto",
             PredictorKind::Cloud => "cloud",
             PredictorKind::Global => "global",
+        }
+    }
+
+    /// The model for a scene lit by `sky` and `sun`: `Auto` becomes the cloud-aware
+    /// model unless prediction there needs other light directions
+    /// ([`needs_other_lights_of`]), which only the global model answers; the others
+    /// stay as they are.
+    pub fn resolve(self, sky: &Sky, sun: Option<&Sun>) -> PredictorKind {
+        match self {
+            PredictorKind::Auto if needs_other_lights_of(sky, sun) => PredictorKind::Global,
+            PredictorKind::Auto => PredictorKind::Cloud,
+            k => k,
         }
     }
 }
@@ -48,10 +69,10 @@ pub enum PredictionModel {
 }
 
 impl PredictionModel {
-    /// The model compiled into Nimbus.
+    /// The model compiled into Nimbus (`Auto` unresolved: the cloud-aware one).
     pub fn shipped(kind: PredictorKind) -> Result<Self, ModelError> {
         Ok(match kind {
-            PredictorKind::Cloud => PredictionModel::Cloud(CloudModel::shipped()?),
+            PredictorKind::Auto | PredictorKind::Cloud => PredictionModel::Cloud(CloudModel::shipped()?),
             PredictorKind::Global => PredictionModel::Global(GlobalModel::shipped()?),
         })
     }
@@ -127,13 +148,18 @@ impl PredictionModel {
 /// Whether prediction in `scene` asks about lights other than the sun's centre: a sky,
 /// or a sun softer than [`crate::global::model::SUN_FIELD_ANGLE`].
 pub fn needs_other_lights(scene: &Scene) -> bool {
-    !scene.sky.is_black() || scene.sun.is_some_and(|s| s.angular_radius() > crate::global::model::SUN_FIELD_ANGLE)
+    needs_other_lights_of(&scene.sky, scene.sun.as_ref())
+}
+
+/// [`needs_other_lights`] for a scene lit by `sky` and `sun`.
+pub fn needs_other_lights_of(sky: &Sky, sun: Option<&Sun>) -> bool {
+    !sky.is_black() || sun.is_some_and(|s| s.angular_radius() > crate::global::model::SUN_FIELD_ANGLE)
 }
 
 /// The fingerprint of the shipped model of `kind` (render caches key on it).
 pub fn shipped_fingerprint(kind: PredictorKind) -> u64 {
     match kind {
-        PredictorKind::Cloud => crate::cloud::model::shipped_fingerprint(),
+        PredictorKind::Auto | PredictorKind::Cloud => crate::cloud::model::shipped_fingerprint(),
         PredictorKind::Global => crate::global::model::shipped_fingerprint(),
     }
 }

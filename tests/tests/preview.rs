@@ -261,8 +261,8 @@ fn two_tier_lattice_switches_at_the_far_transmittance() {
     }
 }
 
-/// The learned preview as the window and `nimbus render --preview` make it (the shipped
-/// global model on its lattice, the sun's field) against path tracing on a
+/// The learned preview as the window and `nimbus render --preview` make it (here with
+/// the shipped global model, `render.predictor = "global"`, on its lattice, the sun's field) against path tracing on a
 /// homogeneous sphere, the kind of medium the model was trained on: the image means
 /// agree within 3 %, the model's stated error there (within about 2 % on
 /// training-like media, 1.023 measured on this sphere backlit; docs/global-model.md)
@@ -276,6 +276,7 @@ fn learned_preview_matches_path_tracing_on_a_sphere() {
                 phase = \"hg\"\ng = 0.85\n[sun]\ndirection = [0.3, -1.0, 0.2]\n[camera]\npreset = \"toplit\"\n\
                 width = 32\nheight = 32\n";
     let mut file = SceneFile::from_toml_str(toml, "sphere").unwrap();
+    file.render.predictor = "global".into();
     let scene = Arc::new(file.build_scene(Some(Arc::new(file.build_grid().unwrap()))).unwrap());
     let render = |file: &SceneFile, spp: u32| {
         let setup = file.integrator(&scene, 64).unwrap();

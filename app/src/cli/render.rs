@@ -57,8 +57,8 @@ pub struct RenderArgs {
     #[arg(long, conflicts_with = "predict")]
     pub reference: bool,
     /// The instant preview: ray marching with single scattering from a precomputed
-    /// sun transmittance and the higher orders learned (the global model on a lattice,
-    /// the default) or from the octave approximation.
+    /// sun transmittance and the higher orders learned (the model of --predictor on a
+    /// lattice, the default) or from the octave approximation.
     #[arg(long, value_name = "learned|octaves", num_args = 0..=1, default_missing_value = "learned",
           conflicts_with_all = ["predict", "reference"])]
     pub preview: Option<String>,
@@ -72,8 +72,9 @@ pub struct RenderArgs {
     /// .json sidecar, global or cloud-aware); default: the shipped one of --predictor.
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// The shipped model without --model: global (the thesis's, the default) or cloud
-    /// (the cloud-aware model). Overrides the scene's render.predictor.
+    /// The shipped model without --model: auto (the default: the cloud-aware model
+    /// under a sun alone, the thesis's global model under a sky or a soft sun), cloud
+    /// or global. Overrides the scene's render.predictor.
     #[arg(long)]
     pub predictor: Option<String>,
     /// Light transport: path (default) or bdpt (volumetric bidirectional path

@@ -56,7 +56,7 @@ pub struct TurntableArgs {
     #[arg(long, value_name = "learned|octaves", num_args = 0..=1, default_missing_value = "learned",
           conflicts_with_all = ["predict", "reference"])]
     pub preview: Option<String>,
-    /// The shipped model: global or cloud (overrides the scene's render.predictor).
+    /// The shipped model: auto, cloud or global (overrides the scene's render.predictor).
     #[arg(long)]
     pub predictor: Option<String>,
     /// Override the resolution: WIDTHxHEIGHT.
@@ -112,11 +112,7 @@ fn model_fingerprint(file: &SceneFile) -> Result<Option<String>> {
     } else {
         match file.model_path() {
             Some(p) => models::fingerprint::model_file_fingerprint(&p)?,
-            None => {
-                let kind = models::prediction::PredictorKind::parse(&file.render.predictor)
-                    .context("render.predictor: choose global or cloud")?;
-                models::prediction::shipped_fingerprint(kind)
-            }
+            None => models::prediction::shipped_fingerprint(file.predictor_kind()),
         }
     };
     Ok(Some(format!("{fp:016x}")))

@@ -1097,6 +1097,12 @@ impl NimbusApp {
                     ui.selectable_value(&mut self.scene.render.preview, "octaves".to_string(), "octaves")
                         .on_hover_text("Wrenninge et al. 2013: N = 3, a = b = c = 0.5");
                 });
+                if self.scene.render.preview == "learned" {
+                    match &self.scene.render.model {
+                        Some(m) => _ = ui.label(format!("model: {m}")),
+                        None => self.predictor_controls(ui),
+                    }
+                }
             }
             ui.horizontal_wrapped(|ui| {
                 ui.label("algorithm");
@@ -1152,12 +1158,12 @@ impl NimbusApp {
                             .on_hover_text("both over the whole view; drag the divider");
                     });
                 }
-                ui.label(match (p2p, &self.scene.render.model, &self.scene.render.p2p_model) {
-                    (true, _, Some(m)) => format!("model: {m}"),
-                    (true, _, None) => "model: shipped point-to-point model".to_string(),
-                    (false, Some(m), _) => format!("model: {m}"),
-                    (false, None, _) => format!("model: shipped {} model", self.scene.render.predictor),
-                });
+                match (p2p, &self.scene.render.model, &self.scene.render.p2p_model) {
+                    (true, _, Some(m)) => _ = ui.label(format!("model: {m}")),
+                    (true, _, None) => _ = ui.label("model: shipped point-to-point model"),
+                    (false, Some(m), _) => _ = ui.label(format!("model: {m}")),
+                    (false, None, _) => self.predictor_controls(ui),
+                }
             }
             self.target_controls(ui);
 
@@ -1182,6 +1188,28 @@ impl NimbusApp {
 
     /// The render's target: until the next change, a number of samples per pixel or
     /// of seconds.
+    /// The shipped model of prediction and of the learned preview: auto (the
+    /// cloud-aware model under a sun alone, the global one under a sky or a soft sun),
+    /// or either by name.
+    fn predictor_controls(&mut self, ui: &mut egui::Ui) {
+        let auto = match self.scene.predictor_kind() {
+            models::prediction::PredictorKind::Global => "auto (global)",
+            _ => "auto (cloud-aware)",
+        };
+        ui.horizontal_wrapped(|ui| {
+            ui.label("model");
+            let p = &mut self.scene.render.predictor;
+            ui.selectable_value(p, "auto".to_string(), auto).on_hover_text(
+                "the cloud-aware model under the sun alone; the thesis's global model under a sky or a soft \
+                 sun, whose light the cloud-aware model (bound to one sun direction) does not answer",
+            );
+            ui.selectable_value(p, "cloud".to_string(), "cloud-aware")
+                .on_hover_text("reads the cloud's density and the sun's transmittance around each point");
+            ui.selectable_value(p, "global".to_string(), "global")
+                .on_hover_text("the thesis's model: optical depths to the edge of a homogeneous convex medium");
+        });
+    }
+
     fn target_controls(&mut self, ui: &mut egui::Ui) {
         ui.horizontal_wrapped(|ui| {
             ui.label("stop at").on_hover_text("the render stops there and says done; any change starts it again");

@@ -28,8 +28,9 @@
 use crate::p2p::DensityPyramid;
 use crate::p2p::pyramid::LevelBlend;
 use engine::field::SunTransmittance;
-use engine::{Cancel, Medium, Sun};
+use engine::{Cancel, DensityGrid, Medium, Sun};
 use glam::Vec3;
+use std::sync::{Arc, Mutex, Weak};
 
 /// Stencil levels.
 pub const LEVELS: usize = 6;
@@ -56,6 +57,8 @@ pub fn feature_names() -> Vec<String> {
                 names.push(format!("{what}_{l}_{c}_ring"));
                 names.extend((0..7).map(|k| format!("{what}_{l}_{c}_dev{k}")));
                 names.push(format!("{what}_{l}_{c}_gradient"));
+                names.push(format!("{what}_{l}_{c}_ring_min"));
+                names.push(format!("{what}_{l}_{c}_ring_max"));
             }
         }
     }
@@ -85,7 +88,7 @@ pub fn offset(p: usize) -> Vec3 {
 /// sun-transmittance field, with the medium's constants.
 #[derive(Clone, Debug)]
 pub struct CloudField {
-    pyramid: DensityPyramid,
+    pyramid: Arc<DensityPyramid>,
     sun: SunTransmittance,
     blends: [LevelBlend; LEVELS],
     h: [f32; LEVELS],
@@ -102,12 +105,13 @@ impl CloudField {
     }
 
     /// [`CloudField::build`], or None when `cancel` asks to stop (the sun field
-    /// checks it per column; the pyramid, a fifth of a second, is finished).
+    /// checks it per column; the pyramid, a tenth to a fifth of a second at 128^3, is
+    /// finished and kept: see [`shared_pyramid`]).
     pub fn build_until(medium: &Medium, sun: &Sun, max_nodes: u32, cancel: Cancel) -> Option<Self> {
         let h0 = medium.bounds().extent().max_element() / BASE_DIVISIONS;
         let h: [f32; LEVELS] = std::array::from_fn(|l| h0 * (1u32 << l) as f32);
         let (pyramid, field) = rayon::join(
-            || DensityPyramid::for_widths(medium.grid(), &h.map(|h| 0.5 * h)).quantized(),
+            || shared_pyramid(medium.grid(), &h.map(|h| 0.5 * h)),
             || SunTransmittance::build_until(medium, sun, max_nodes, cancel),
         );
         let field = field?;
@@ -191,10 +195,57 @@ impl CloudField {
     }
 }
 
+/// The 16-bit density pyramids built last, with the grid and the filter widths each
+/// was built for. A pyramid depends on the grid and the widths only (not on rho, the
+/// sun or the sun field's size), so the bindings of one cloud share one: the window
+/// binds a cloud at three field sizes per change (its first look, the render's coarse
+/// start, the full field) and again for every new sun or rho, and rebuilding the
+/// pyramid each time made every change wait for it. The grids are held weakly: the
+/// cache keeps no cloud alive, and a dropped grid's entry can never match a new grid
+/// at the same address (a live `Weak` keeps the address allocated). Grids are not
+/// changed once shared behind an `Arc`.
+static PYRAMIDS: Mutex<Vec<PyramidEntry>> = Mutex::new(Vec::new());
+
+/// A grid, the filter widths (as bits) and the pyramid built for them.
+type PyramidEntry = (Weak<DensityGrid>, [u32; LEVELS], Arc<DensityPyramid>);
+
+/// Pyramids that no field holds kept by [`shared_pyramid`] (a cloud and the one
+/// before it: dragging a slider back and forth, or a coarse and a full build of one
+/// cloud). A pyramid some field holds stays findable while it does, at no cost in
+/// memory.
+const PYRAMIDS_KEPT: usize = 2;
+
+/// The quantized pyramid of `grid` for the stencil's filter `widths`, from the cache
+/// when it holds one (the same pyramid, bit for bit), else built and kept.
+pub fn shared_pyramid(grid: &Arc<DensityGrid>, widths: &[f32; LEVELS]) -> Arc<DensityPyramid> {
+    let key = widths.map(f32::to_bits);
+    let same = |e: &PyramidEntry| e.1 == key && std::ptr::eq(e.0.as_ptr(), Arc::as_ptr(grid));
+    {
+        let mut cache = PYRAMIDS.lock().unwrap_or_else(|p| p.into_inner());
+        cache.retain(|e| e.0.strong_count() > 0);
+        if let Some(e) = cache.iter().find(|e| same(e)) {
+            return e.2.clone();
+        }
+    }
+    let pyramid = Arc::new(DensityPyramid::for_widths(grid, widths).quantized());
+    let mut cache = PYRAMIDS.lock().unwrap_or_else(|p| p.into_inner());
+    if !cache.iter().any(same) {
+        cache.insert(0, (Arc::downgrade(grid), key, pyramid.clone()));
+        // Most recent first: drop the unused ones beyond the first PYRAMIDS_KEPT.
+        let mut unused = 0;
+        cache.retain(|e| {
+            unused += usize::from(Arc::strong_count(&e.2) == 1);
+            Arc::strong_count(&e.2) > 1 || unused <= PYRAMIDS_KEPT
+        });
+    }
+    pyramid
+}
+
 /// Points of one stencil plane (fixed c): 3 x 3.
 pub const PLANE: usize = 9;
-/// Features of one plane: centre, ring mean, seven scaled deviations, gradient.
-pub const PLANE_FEATURES: usize = 10;
+/// Features of one plane: centre, ring mean, seven scaled deviations, gradient, the
+/// ring's least and greatest values.
+pub const PLANE_FEATURES: usize = 12;
 
 /// One plane's nine raw values (index (a + 1) + 3 (b + 1)) as the network sees them:
 /// the centre, the mean m of the ring of eight around it, sin(theta) (v - m) for
@@ -208,7 +259,11 @@ pub const PLANE_FEATURES: usize = 10;
 /// from one in a thin even layer; the gradient's magnitude can, and it does not
 /// depend on the azimuth: the root mean square of the central differences along the
 /// two axes and, divided by sqrt 2, along the two diagonals, which for a field
-/// linear over the plane is |grad| h at any azimuth.
+/// linear over the plane is |grad| h at any azimuth. The ring's least and greatest
+/// values follow: they do not depend on the azimuth either, and say what a mean and a
+/// slope cannot, whether an empty or a lit neighbour lies on some side (a gap in a
+/// thick layer, light reaching a shadowed point from beside it), which a network
+/// would otherwise have to build from the scaled deviations, and cannot at alignment.
 #[inline]
 pub fn encode_plane(raw: &[f32], sin_theta: f32, out: &mut [f32]) {
     const RING: [usize; 8] = [0, 1, 2, 3, 5, 6, 7, 8];
@@ -222,6 +277,10 @@ pub fn encode_plane(raw: &[f32], sin_theta: f32, out: &mut [f32]) {
     let (d1, d2) = (0.5 * (raw[8] - raw[0]), 0.5 * (raw[6] - raw[2]));
     // The diagonals are sqrt 2 h long: (d1^2 + d2^2) / 2 is |grad|^2 h^2 too.
     out[9] = (0.5 * (ax * ax + ay * ay + 0.5 * (d1 * d1 + d2 * d2))).sqrt();
+    let (lo, hi) =
+        RING.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &i| (lo.min(raw[i]), hi.max(raw[i])));
+    out[10] = lo;
+    out[11] = hi;
 }
 
 #[cfg(test)]
@@ -320,6 +379,9 @@ mod tests {
                 for (k, &i) in ring[..7].iter().enumerate() {
                     assert!((enc[2 + k] / sin + mean - r[i]).abs() < 1e-3, "plane {plane} point {i}");
                 }
+                let lo = ring.iter().map(|&i| r[i]).fold(f32::INFINITY, f32::min);
+                let hi = ring.iter().map(|&i| r[i]).fold(f32::NEG_INFINITY, f32::max);
+                assert_eq!((enc[10], enc[11]), (lo, hi), "plane {plane}: the ring's extremes");
             }
             for l in 0..LEVELS {
                 let s = 0.5 * f.h[l];
@@ -409,12 +471,41 @@ mod tests {
         let m = blob_medium();
         let sun = Sun::new(Vec3::new(0.0, -1.0, 0.0), Vec3::ONE, 0.0).unwrap();
         let a = CloudField::build(&m, &sun, 64);
-        let b =
-            rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap().install(|| CloudField::build(&m, &sun, 64));
+        // Another grid of the same cloud, so that its pyramid is built again.
+        let m1 = blob_medium();
+        let b = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap()
+            .install(|| CloudField::build(&m1, &sun, 64));
+        assert!(!Arc::ptr_eq(&a.pyramid, &b.pyramid));
         let (mut fa, mut fb) = (vec![0.0; N_FEATURES], vec![0.0; N_FEATURES]);
         a.features(0.9, 0.5, Vec3::new(0.1, 0.0, 0.05), Vec3::X, &mut fa);
         b.features(0.9, 0.5, Vec3::new(0.1, 0.0, 0.05), Vec3::X, &mut fb);
         assert_eq!(fa, fb);
         assert!(fa.iter().all(|v| v.is_finite()));
+    }
+
+    /// The fields of one grid share its pyramid whatever the sun, rho and sun-field
+    /// size; another grid (even of the same cloud) gets its own; a grid dropped leaves
+    /// the cache.
+    #[test]
+    fn fields_of_one_grid_share_the_pyramid() {
+        let m = blob_medium();
+        let sun = Sun::new(Vec3::new(0.0, -1.0, 0.0), Vec3::ONE, 0.0).unwrap();
+        let side = Sun::new(Vec3::new(1.0, -0.3, 0.2), Vec3::ONE, 0.0).unwrap();
+        let a = CloudField::build(&m, &sun, 64);
+        let thicker = Medium::new(m.grid().clone(), 60.0, 0.9, PhaseFunction::HenyeyGreenstein { g: 0.8 }).unwrap();
+        let b = CloudField::build(&thicker, &side, 16);
+        assert!(Arc::ptr_eq(&a.pyramid, &b.pyramid));
+        let other = blob_medium();
+        let c = CloudField::build(&other, &sun, 64);
+        assert!(!Arc::ptr_eq(&a.pyramid, &c.pyramid));
+        let weak = Arc::downgrade(other.grid());
+        drop((other, c));
+        assert_eq!(weak.strong_count(), 0, "the cache holds no grid");
+        let live = |w: &Weak<DensityGrid>| PYRAMIDS.lock().unwrap().iter().any(|e| Weak::ptr_eq(&e.0, w));
+        let _ = CloudField::build(&blob_medium(), &sun, 16);
+        assert!(!live(&weak), "a dropped grid's entry is gone");
     }
 }

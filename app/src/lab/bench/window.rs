@@ -33,6 +33,10 @@ pub struct BenchLatencyArgs {
     /// first image at once, as when an artist keeps adjusting).
     #[arg(long, default_value_t = 0)]
     pub settle_ms: u64,
+    /// The shipped model of the first look and of prediction: auto (the default, as
+    /// the window's), cloud or global.
+    #[arg(long, default_value = "auto")]
+    pub predictor: String,
 }
 
 /// Resident set size of this process in MiB (Linux), or None where /proc is missing.
@@ -143,7 +147,11 @@ pub fn bench_memory(args: BenchMemoryArgs) -> Result<()> {
 pub fn bench_latency(args: BenchLatencyArgs) -> Result<()> {
     use crate::gui::worker::WorkerHandle;
     let worker = WorkerHandle::start(|| {});
-    let base = crate::gui::default_scene();
+    let mut base = crate::gui::default_scene();
+    if models::prediction::PredictorKind::parse(&args.predictor).is_none() {
+        bail!("--predictor {:?}: choose {}", args.predictor, models::prediction::PredictorKind::NAMES);
+    }
+    base.render.predictor = args.predictor.clone();
     let first_image = |scene: &SceneFile, coarse: bool| -> Result<f64> {
         let t = std::time::Instant::now();
         let g = worker.render(scene, coarse);
@@ -205,9 +213,10 @@ pub fn bench_latency(args: BenchLatencyArgs) -> Result<()> {
         ),
     ];
     println!(
-        "# nimbus bench latency: ms from a change to the first image (median of {}, {} ms settling before each), {} threads",
+        "# nimbus bench latency: ms from a change to the first image (median of {}, {} ms settling before each), {} model, {} threads",
         args.reps,
         args.settle_ms,
+        base.predictor_kind().name(),
         rayon::current_num_threads()
     );
     println!("| change | path tracing | prediction (k 2) |");

@@ -78,8 +78,10 @@ pub struct EvalArgs {
     /// one of --predictor).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// The shipped model used without --model: global (the default) or cloud.
-    #[arg(long, default_value = "global")]
+    /// The shipped model used without --model: auto (the default: the cloud-aware
+    /// model, or the global one with --sky, whose light the cloud-aware model does not
+    /// answer), cloud or global.
+    #[arg(long, default_value = "auto")]
     pub predictor: String,
     /// Also measure path tracing's time to preview (a second path-traced run per
     /// configuration, another seed, until 5 % relative RMSE against the reference, its
@@ -169,7 +171,11 @@ fn model_id(args: &EvalArgs) -> Result<String> {
 
 fn predictor_kind(args: &EvalArgs) -> Result<PredictorKind> {
     PredictorKind::parse(&args.predictor)
-        .with_context(|| format!("--predictor {:?}: choose {}", args.predictor, PredictorKind::NAMES))
+        .with_context(|| format!("--predictor {:?}: choose {}", args.predictor, PredictorKind::NAMES))?;
+    // Every scene of the study has the same lights: the sharp sun, and the sky with --sky.
+    let mut scene = eval_scene("scene-a", "toplit", 40.0, 2, 8, args.sky)?;
+    scene.render.predictor = args.predictor.clone();
+    Ok(scene.predictor_kind())
 }
 
 /// The cache name of one prediction cell: everything its numbers depend on.
@@ -225,7 +231,8 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
     if args.spp < 2 || args.spp_ref < 2 || args.size == 0 {
         bail!("--spp and --spp-ref must be at least 2 (variances need two samples), --size at least 1");
     }
-    let model = PredictionModel::load_or_shipped(args.model.as_deref(), predictor_kind(args)?)?;
+    let kind = predictor_kind(args)?;
+    let model = PredictionModel::load_or_shipped(args.model.as_deref(), kind)?;
     let model_id = model_id(args).context("--model")?;
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
@@ -250,10 +257,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             args.spp_ref,
             args.spp,
             args.p,
-            args.model
-                .as_ref()
-                .map(|p| p.display().to_string())
-                .unwrap_or_else(|| format!("shipped {}", args.predictor))
+            args.model.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| format!("shipped {}", kind.name()))
         );
     }
     let renders_per_group = args.spp_ref as u64 + args.spp as u64 * args.k.len() as u64;
