@@ -1098,10 +1098,7 @@ impl NimbusApp {
                         .on_hover_text("Wrenninge et al. 2013: N = 3, a = b = c = 0.5");
                 });
                 if self.scene.render.preview == "learned" {
-                    match &self.scene.render.model {
-                        Some(m) => _ = ui.label(format!("model: {m}")),
-                        None => self.predictor_controls(ui),
-                    }
+                    self.predictor_controls(ui);
                 }
             }
             ui.horizontal_wrapped(|ui| {
@@ -1158,11 +1155,10 @@ impl NimbusApp {
                             .on_hover_text("both over the whole view; drag the divider");
                     });
                 }
-                match (p2p, &self.scene.render.model, &self.scene.render.p2p_model) {
-                    (true, _, Some(m)) => _ = ui.label(format!("model: {m}")),
-                    (true, _, None) => _ = ui.label("model: shipped point-to-point model"),
-                    (false, Some(m), _) => _ = ui.label(format!("model: {m}")),
-                    (false, None, _) => self.predictor_controls(ui),
+                match (p2p, &self.scene.render.p2p_model) {
+                    (true, Some(m)) => _ = ui.label(format!("model: {m}")),
+                    (true, None) => _ = ui.label("model: shipped point-to-point model"),
+                    (false, _) => self.predictor_controls(ui),
                 }
             }
             self.target_controls(ui);
@@ -1186,12 +1182,15 @@ impl NimbusApp {
         });
     }
 
-    /// The render's target: until the next change, a number of samples per pixel or
-    /// of seconds.
-    /// The shipped model of prediction and of the learned preview: auto (the
-    /// cloud-aware model under a sun alone, the global one under a sky or a soft sun),
+    /// The model of prediction at bounce k and of the learned preview: the scene's
+    /// model file if it names one, else the shipped one to choose, auto (the
+    /// cloud-aware model under a sun alone, the global one under a sky or a soft sun)
     /// or either by name.
     fn predictor_controls(&mut self, ui: &mut egui::Ui) {
+        if let Some(m) = &self.scene.render.model {
+            ui.label(format!("model: {m}"));
+            return;
+        }
         let auto = match self.scene.predictor_kind() {
             models::prediction::PredictorKind::Global => "auto (global)",
             _ => "auto (cloud-aware)",
@@ -1209,6 +1208,9 @@ impl NimbusApp {
                 .on_hover_text("the thesis's model: optical depths to the edge of a homogeneous convex medium");
         });
     }
+
+    /// The render's target: until the next change, a number of samples per pixel or
+    /// of seconds.
 
     fn target_controls(&mut self, ui: &mut egui::Ui) {
         ui.horizontal_wrapped(|ui| {
