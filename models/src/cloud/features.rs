@@ -98,23 +98,23 @@ pub struct CloudField {
 }
 
 impl CloudField {
-    /// Builds the pyramid (the levels the stencil's widths read) and the sun field (at
+    /// Builds the pyramid (the levels the stencil's widths read, from at most
+    /// `2 max_nodes` samples per axis: see [`pyramid_axis`]) and the sun field (at
     /// most `max_nodes` per axis); both in parallel, independent of the thread count.
     pub fn build(medium: &Medium, sun: &Sun, max_nodes: u32) -> Self {
         Self::build_until(medium, sun, max_nodes, Cancel::NEVER).expect("never cancelled")
     }
 
     /// [`CloudField::build`], or None when `cancel` asks to stop (the sun field
-    /// checks it per column; the pyramid, a tenth to a fifth of a second at 128^3, is
-    /// finished and kept: see [`shared_pyramid`]).
+    /// checks it per column, the pyramid between its filter passes).
     pub fn build_until(medium: &Medium, sun: &Sun, max_nodes: u32, cancel: Cancel) -> Option<Self> {
         let h0 = medium.bounds().extent().max_element() / BASE_DIVISIONS;
         let h: [f32; LEVELS] = std::array::from_fn(|l| h0 * (1u32 << l) as f32);
         let (pyramid, field) = rayon::join(
-            || shared_pyramid(medium.grid(), &h.map(|h| 0.5 * h)),
+            || shared_pyramid(medium.grid(), &h.map(|h| 0.5 * h), pyramid_axis(max_nodes), cancel),
             || SunTransmittance::build_until(medium, sun, max_nodes, cancel),
         );
-        let field = field?;
+        let (pyramid, field) = (pyramid?, field?);
         let blends = std::array::from_fn(|l| pyramid.select(0.5 * h[l]));
         Some(CloudField { pyramid, w: field.to_sun(), sun: field, blends, h, rho: medium.rho() })
     }
@@ -206,8 +206,19 @@ impl CloudField {
 /// changed once shared behind an `Arc`.
 static PYRAMIDS: Mutex<Vec<PyramidEntry>> = Mutex::new(Vec::new());
 
-/// A grid, the filter widths (as bits) and the pyramid built for them.
-type PyramidEntry = (Weak<DensityGrid>, [u32; LEVELS], Arc<DensityPyramid>);
+/// A grid, the filter widths (as bits) with the block size of the pyramid's samples,
+/// and the pyramid built for them.
+type PyramidEntry = (Weak<DensityGrid>, ([u32; LEVELS], u32), Arc<DensityPyramid>);
+
+/// The pyramid of a field of `max_nodes` sun-field nodes per axis is built from at
+/// most twice as many samples per axis (block averages of a finer grid): a binding's
+/// node count is its budget of detail and time. The renderer's fields (128 nodes and
+/// up) and the data generator's read every voxel of grids up to 256^3; the window's
+/// first look after a change (32 nodes) filters 2^3-voxel blocks of its 96^3 cloud,
+/// an eighth of the voxels, so that a new cloud shows within the latency goal.
+pub fn pyramid_axis(max_nodes: u32) -> u32 {
+    max_nodes.saturating_mul(2)
+}
 
 /// Pyramids that no field holds kept by [`shared_pyramid`] (a cloud and the one
 /// before it: dragging a slider back and forth, or a coarse and a full build of one
@@ -215,19 +226,27 @@ type PyramidEntry = (Weak<DensityGrid>, [u32; LEVELS], Arc<DensityPyramid>);
 /// memory.
 const PYRAMIDS_KEPT: usize = 2;
 
-/// The quantized pyramid of `grid` for the stencil's filter `widths`, from the cache
-/// when it holds one (the same pyramid, bit for bit), else built and kept.
-pub fn shared_pyramid(grid: &Arc<DensityGrid>, widths: &[f32; LEVELS]) -> Arc<DensityPyramid> {
-    let key = widths.map(f32::to_bits);
+/// The quantized pyramid of `grid` for the stencil's filter `widths`, from block
+/// averages with at most `max_axis` samples per axis
+/// ([`DensityPyramid::for_widths_until`]), from the cache when it holds one (the same
+/// pyramid, bit for bit: bindings whose `max_axis` gives the same blocks share it),
+/// else built and kept; None when `cancel` asks to stop before it is built.
+pub fn shared_pyramid(
+    grid: &Arc<DensityGrid>,
+    widths: &[f32; LEVELS],
+    max_axis: u32,
+    cancel: Cancel,
+) -> Option<Arc<DensityPyramid>> {
+    let key = (widths.map(f32::to_bits), DensityPyramid::block_factor(grid.dims(), max_axis));
     let same = |e: &PyramidEntry| e.1 == key && std::ptr::eq(e.0.as_ptr(), Arc::as_ptr(grid));
     {
         let mut cache = PYRAMIDS.lock().unwrap_or_else(|p| p.into_inner());
         cache.retain(|e| e.0.strong_count() > 0);
         if let Some(e) = cache.iter().find(|e| same(e)) {
-            return e.2.clone();
+            return Some(e.2.clone());
         }
     }
-    let pyramid = Arc::new(DensityPyramid::for_widths(grid, widths).quantized());
+    let pyramid = Arc::new(DensityPyramid::for_widths_until(grid, widths, max_axis, cancel)?.quantized());
     let mut cache = PYRAMIDS.lock().unwrap_or_else(|p| p.into_inner());
     if !cache.iter().any(same) {
         cache.insert(0, (Arc::downgrade(grid), key, pyramid.clone()));
@@ -238,7 +257,7 @@ pub fn shared_pyramid(grid: &Arc<DensityGrid>, widths: &[f32; LEVELS]) -> Arc<De
             Arc::strong_count(&e.2) > 1 || unused <= PYRAMIDS_KEPT
         });
     }
-    pyramid
+    Some(pyramid)
 }
 
 /// Points of one stencil plane (fixed c): 3 x 3.
@@ -487,7 +506,8 @@ mod tests {
     }
 
     /// The fields of one grid share its pyramid whatever the sun, rho and sun-field
-    /// size; another grid (even of the same cloud) gets its own; a grid dropped leaves
+    /// size down to half the grid's voxels per axis (coarser fields share a coarser
+    /// one); another grid (even of the same cloud) gets its own; a grid dropped leaves
     /// the cache.
     #[test]
     fn fields_of_one_grid_share_the_pyramid() {
@@ -496,8 +516,15 @@ mod tests {
         let side = Sun::new(Vec3::new(1.0, -0.3, 0.2), Vec3::ONE, 0.0).unwrap();
         let a = CloudField::build(&m, &sun, 64);
         let thicker = Medium::new(m.grid().clone(), 60.0, 0.9, PhaseFunction::HenyeyGreenstein { g: 0.8 }).unwrap();
-        let b = CloudField::build(&thicker, &side, 16);
+        let b = CloudField::build(&thicker, &side, 24);
         assert!(Arc::ptr_eq(&a.pyramid, &b.pyramid));
+        // A field coarser than half the grid's voxels per axis reads block averages:
+        // a pyramid of its own, shared by the fields that give the same blocks.
+        let coarse = CloudField::build(&m, &side, 16);
+        let coarser = CloudField::build(&thicker, &sun, 12);
+        assert!(!Arc::ptr_eq(&a.pyramid, &coarse.pyramid));
+        assert!(Arc::ptr_eq(&coarse.pyramid, &coarser.pyramid));
+        assert!(coarse.pyramid.bytes() * 4 < a.pyramid.bytes(), "{} / {}", coarse.pyramid.bytes(), a.pyramid.bytes());
         let other = blob_medium();
         let c = CloudField::build(&other, &sun, 64);
         assert!(!Arc::ptr_eq(&a.pyramid, &c.pyramid));

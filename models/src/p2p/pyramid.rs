@@ -16,7 +16,7 @@
 //! a separable convolution evaluated at the coarse centres, which fall halfway
 //! between fine ones.
 
-use engine::DensityGrid;
+use engine::{Cancel, DensityGrid};
 use glam::Vec3;
 use rayon::prelude::*;
 
@@ -501,7 +501,7 @@ fn block_average(grid: &DensityGrid, f: u32) -> Vec<f32> {
 impl DensityPyramid {
     /// Builds levels until one's filter is wider than `max_std` (world units).
     pub fn new(grid: &DensityGrid, max_std: f32) -> Self {
-        Self::build(grid, max_std, None)
+        Self::build(grid, max_std, None, u32::MAX, Cancel::NEVER).expect("never cancelled")
     }
 
     /// [`DensityPyramid::new`] for lookups at the filter widths `widths` alone (up to
@@ -509,22 +509,39 @@ impl DensityPyramid {
     /// made as `new` makes them, bit for bit; the others are left empty (no samples:
     /// a lookup through one reads 0), which skips their filtering and their memory.
     pub fn for_widths(grid: &DensityGrid, widths: &[f32]) -> Self {
-        let max_std = widths.iter().fold(0.0f32, |m, w| m.max(*w));
-        Self::build(grid, max_std, Some(widths))
+        Self::for_widths_until(grid, widths, u32::MAX, Cancel::NEVER).expect("never cancelled")
     }
 
-    fn build(grid: &DensityGrid, max_std: f32, widths: Option<&[f32]>) -> Self {
-        // A big grid (above 256^3 voxels) starts from block averages over 2^n voxels
-        // per axis, so the pyramid's finest level stays within 64 MiB: features wider
-        // than a voxel of it are unchanged, finer ones see the average.
+    /// [`DensityPyramid::for_widths`] on block averages of `grid` with at most
+    /// `max_axis` samples per axis ([`DensityPyramid::block_factor`]), or None when
+    /// `cancel` asks to stop (it is checked between the passes of the filters, a few
+    /// milliseconds apart at 128^3). A coarse binding of a cloud (the window's first
+    /// look) then filters an eighth of the voxels or fewer: its finest features see
+    /// the block averages, the wider ones are unchanged.
+    pub fn for_widths_until(grid: &DensityGrid, widths: &[f32], max_axis: u32, cancel: Cancel) -> Option<Self> {
+        let max_std = widths.iter().fold(0.0f32, |m, w| m.max(*w));
+        Self::build(grid, max_std, Some(widths), max_axis, cancel)
+    }
+
+    /// The block size (voxels per axis, a power of two) the pyramid of a grid of
+    /// `dims` voxels starts from: the least that leaves at most `max_axis` blocks per
+    /// axis and at most 256^3 blocks in all (so that the finest level stays within
+    /// 64 MiB).
+    pub fn block_factor(dims: glam::UVec3, max_axis: u32) -> u32 {
         let mut f = 1u32;
-        let voxels = |f: u32| {
-            let c = (grid.dims() + (f - 1)) / f;
-            c.x as u64 * c.y as u64 * c.z as u64
+        let blocks = |f: u32| (dims + (f - 1)) / f;
+        let fits = |f: u32| {
+            let c = blocks(f);
+            c.max_element() <= max_axis.max(1) && c.x as u64 * c.y as u64 * c.z as u64 <= 1 << 24
         };
-        while voxels(f) > 1 << 24 {
+        while !fits(f) && f < 1 << 16 {
             f *= 2;
         }
+        f
+    }
+
+    fn build(grid: &DensityGrid, max_std: f32, widths: Option<&[f32]>, max_axis: u32, cancel: Cancel) -> Option<Self> {
+        let f = Self::block_factor(grid.dims(), max_axis);
         let (d, h0, values) = if f == 1 {
             (grid.dims(), grid.voxel_size(), grid.to_dense_vec())
         } else {
@@ -535,18 +552,25 @@ impl DensityPyramid {
         let raw = Level::new(grid.origin(), h0, [d.x as usize, d.y as usize, d.z as usize], Texels::F32(values));
         // Filters `level` (stored variance `from` in its voxels^2) to stored variance
         // `to` on the same grid.
+        let stop = || cancel.requested();
         let blur = |level: &Level, from: f64, to: f64| {
             let (mut data, mut dims) = (level.data.f32().to_vec(), level.dims);
             for axis in 0..3 {
+                if stop() {
+                    return None;
+                }
                 (data, dims) = resample_axis(&data, dims, axis, to - from, 0.0, 1.0, dims[axis]);
             }
-            level.with_data(dims, Texels::F32(data))
+            Some(level.with_data(dims, Texels::F32(data)))
         };
         // Octave 0: the voxel grid, padded, stored with the variance of its base
         // width 2h.
         let base = 4.0 - tent;
         let (mut data, mut dims) = (raw.data.f32().to_vec(), raw.dims);
         for axis in 0..3 {
+            if stop() {
+                return None;
+            }
             let n_out = dims[axis] + 2 * PAD as usize;
             (data, dims) = resample_axis(&data, dims, axis, base, -(PAD as f64), 1.0, n_out);
         }
@@ -556,6 +580,9 @@ impl DensityPyramid {
             let prev = octaves.last().unwrap();
             let (mut data, mut dims) = (prev.data.f32().to_vec(), prev.dims);
             for axis in 0..3 {
+                if stop() {
+                    return None;
+                }
                 // Coarse centre J sits at fine index position 2 (J - PAD) + 0.5; the
                 // stored variance grows from `base` h^2 to `base` (2h)^2.
                 let n_out = prev.dims[axis].div_ceil(2) + 2 * PAD as usize;
@@ -585,18 +612,23 @@ impl DensityPyramid {
             (needed[s.lo], needed[s.hi]) = (true, true);
         }
         let empty = |level: &Level| level.with_data([0; 3], Texels::F32(Vec::new()));
-        let made = |i: usize, make: &dyn Fn() -> Level, like: &Level| if needed[i] { make() } else { empty(like) };
+        let made = |i: usize, make: &dyn Fn() -> Option<Level>, like: &Level| {
+            if needed[i] { make() } else { Some(empty(like)) }
+        };
         let mut levels = vec![
-            made(0, &|| raw.clone(), &raw),
-            made(1, &|| blur(&raw, 0.0, 1.0 - tent), &raw),
-            made(2, &|| blur(&raw, 0.0, 2.0 - tent), &raw),
+            made(0, &|| Some(raw.clone()), &raw)?,
+            made(1, &|| blur(&raw, 0.0, 1.0 - tent), &raw)?,
+            made(2, &|| blur(&raw, 0.0, 2.0 - tent), &raw)?,
         ];
         for (m, level) in octaves.into_iter().enumerate() {
-            let half = (m + 1 < n_oct).then(|| made(levels.len() + 1, &|| blur(&level, base, 8.0 - tent), &level));
+            let half = match m + 1 < n_oct {
+                true => Some(made(levels.len() + 1, &|| blur(&level, base, 8.0 - tent), &level)?),
+                false => None,
+            };
             levels.push(if needed[levels.len()] { level } else { empty(&level) });
             levels.extend(half);
         }
-        DensityPyramid { levels, stds }
+        Some(DensityPyramid { levels, stds })
     }
 
     pub fn levels(&self) -> usize {
@@ -889,6 +921,63 @@ mod tests {
         for (i, r) in read.iter().enumerate() {
             assert_eq!(some.levels[i].data.bytes() > 0, *r, "level {i}: kept only if read");
         }
+    }
+
+    /// The block size the pyramid starts from: the least power of two within the
+    /// samples per axis asked for and within 256^3 samples in all.
+    #[test]
+    fn block_factor_keeps_within_both_limits() {
+        let f = |d: [u32; 3], max_axis| DensityPyramid::block_factor(glam::UVec3::from_array(d), max_axis);
+        assert_eq!(f([96; 3], u32::MAX), 1);
+        assert_eq!(f([96; 3], 96), 1);
+        assert_eq!(f([96; 3], 64), 2);
+        assert_eq!(f([96, 40, 20], 48), 2);
+        assert_eq!(f([97; 3], 48), 4);
+        assert_eq!(f([256; 3], u32::MAX), 1);
+        assert_eq!(f([257, 256, 256], u32::MAX), 2);
+        assert_eq!(f([1024; 3], 512), 4);
+        assert_eq!(f([5; 3], 0), 8);
+    }
+
+    /// A pyramid limited to fewer samples per axis than the grid's voxels is the
+    /// pyramid of the grid's block averages, bit for bit (the blocks placed where the
+    /// voxels they average are); a cancelled build gives nothing.
+    #[test]
+    fn a_coarse_pyramid_is_that_of_the_block_averages() {
+        let bounds = engine::Bounds3::new(Vec3::new(-0.5, -0.3, -0.4), Vec3::new(0.5, 0.3, 0.4));
+        let cloud = |p: Vec3| (1.0 - 2.2 * p.length()).max(0.0) * (1.0 + (9.0 * p.x).sin());
+        let grid = DensityGrid::from_fn(glam::UVec3::new(30, 18, 24), bounds, cloud).unwrap();
+        let h = 1.0 / 30.0;
+        let widths = [0.5 * h, 1.5 * h, 3.0 * h, 7.0 * h];
+        let coarse = DensityPyramid::for_widths_until(&grid, &widths, 16, Cancel::NEVER).unwrap();
+        let averages = DensityGrid::new(
+            glam::UVec3::new(15, 9, 12),
+            block_average(&grid, 2),
+            grid.origin(),
+            grid.voxel_size() * 2.0,
+        )
+        .unwrap();
+        let direct = DensityPyramid::for_widths(&averages, &widths);
+        assert_eq!(coarse.levels(), direct.levels());
+        let mut rng = engine::Rng::new(8, 0, 0);
+        let points: Vec<Vec3> =
+            (0..101).map(|_| (Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5) * 1.1).collect();
+        for w in widths {
+            let (a, b) = (coarse.select(w), direct.select(w));
+            let (mut x, mut y) = (vec![0.0; points.len()], vec![0.0; points.len()]);
+            coarse.lookup_many(a, &points, &mut x);
+            direct.lookup_many(b, &points, &mut y);
+            assert!(x.iter().zip(&y).all(|(x, y)| x.to_bits() == y.to_bits()), "width {w}");
+            assert!(x.iter().any(|v| *v > 0.0), "width {w} reads the cloud");
+        }
+        // Fewer samples than the full-resolution pyramid (padding included).
+        let full = DensityPyramid::for_widths(&grid, &widths).bytes();
+        assert!(coarse.bytes() * 2 < full, "{} / {full}", coarse.bytes());
+        let control = engine::RenderControl::new();
+        let stale = control.generation();
+        control.bump();
+        assert!(DensityPyramid::for_widths_until(&grid, &widths, 64, Cancel::on(&control, stale)).is_none());
+        assert!(DensityPyramid::for_widths_until(&grid, &widths, 64, Cancel::on(&control, stale + 1)).is_some());
     }
 
     /// The separable filter, vectorized along rows and slices, makes exactly the sums

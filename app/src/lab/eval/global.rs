@@ -439,6 +439,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 reference: &reference,
                 mask: &mask,
                 bound: &bind,
+                field_nodes: args.field_nodes,
                 spp: args.preview_passes.max(2),
                 control: &control,
                 cache: &cache,

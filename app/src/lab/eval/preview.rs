@@ -69,6 +69,8 @@ pub struct PreviewJob<'a> {
     pub mask: &'a [bool],
     /// The model bound to this cloud and sun (built on first use).
     pub bound: &'a dyn Fn() -> Bound,
+    /// The model's field nodes per axis `bound` builds (`--field-nodes`).
+    pub field_nodes: u32,
     /// Passes of each preview render.
     pub spp: u32,
     pub control: &'a RenderControl,
@@ -131,10 +133,11 @@ impl PreviewJob<'_> {
     }
 
     /// The cache files of `technique`'s cell: (json, npy). The learned preview's name
-    /// carries its lattice's nodes per axis (another lattice, another image).
+    /// carries its lattice's nodes per axis and its model's field nodes (other ones,
+    /// another image).
     fn cache_paths(&self, technique: &str) -> (std::path::PathBuf, std::path::PathBuf) {
         let lattice = if technique == TECHNIQUES[0] {
-            format!("_nodes{}", self.file.render.preview_nodes)
+            format!("_nodes{}_fields{}", self.file.render.preview_nodes, self.field_nodes)
         } else {
             String::new()
         };
