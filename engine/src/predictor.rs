@@ -44,6 +44,13 @@ pub trait InScatterPredictor: Send + Sync {
     fn name(&self) -> &str {
         "predictor"
     }
+
+    /// Bytes of what the predictor holds for its cloud and light (the fields its
+    /// features read; shared parts counted whole), so that a preview can state all the
+    /// memory it keeps. 0 for one that holds nothing per cloud.
+    fn memory_bytes(&self) -> usize {
+        0
+    }
 }
 
 /// Predicts the point-to-point transport T(x_e, w_e <-> x_s, w_s) of thesis eq. 6.1

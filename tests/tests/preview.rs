@@ -302,3 +302,38 @@ fn learned_preview_matches_path_tracing_on_a_sphere() {
     let tol = 0.03 * b + z_bound(0.01, 1) * var.sqrt();
     assert!((a - b).abs() <= tol, "learned preview {a} vs path tracing {b} (tolerance {tol}, se {})", var.sqrt());
 }
+
+/// A preview states all the memory it keeps: a lazily filled learned lattice keeps
+/// its model, and the model's fields count with the lattices; a lattice filled up
+/// front has let the model go, and counts the lattice alone.
+#[test]
+fn learned_lattice_counts_the_fields_its_model_keeps() {
+    use engine::InScatterPredictor;
+    use engine::integrator::preview::EAGER_LATTICE_NODES;
+    struct Holding;
+    impl InScatterPredictor for Holding {
+        fn predict(&self, _: &Medium, _: &Sun, _: Vec3, _: Vec3) -> f32 {
+            0.5
+        }
+        fn predicts_single_scattering(&self) -> bool {
+            false
+        }
+        fn memory_bytes(&self) -> usize {
+            3 << 20
+        }
+    }
+    let scene = sphere_scene(8.0, 0.9, 0.5, Vec3::new(0.3, -1.0, 0.2));
+    let field = Arc::new(SunTransmittance::build(&scene.medium, scene.sun.as_ref().unwrap(), 64));
+    let eye = scene.camera.position();
+    let lazy = Preview::learned_lattice(&scene, &field, Arc::new(Holding), eye, 48);
+    let eager = Preview::learned_lattice(&scene, &field, Arc::new(Holding), eye, 16);
+    assert!(lazy.nodes().element_product() > EAGER_LATTICE_NODES);
+    assert!(eager.nodes().element_product() <= EAGER_LATTICE_NODES);
+    let nodes = |l: &engine::integrator::preview::LearnedLattice| l.nodes().element_product() as usize;
+    // The lazy pair: 48^3 and the far lattice's nodes, 4 bytes each, and the model's.
+    assert!(lazy.memory_bytes() > 4 * nodes(&lazy) + (3 << 20), "{}", lazy.memory_bytes());
+    assert!(lazy.memory_bytes() < 4 * nodes(&lazy) * 2 + (3 << 20), "{}", lazy.memory_bytes());
+    assert_eq!(eager.memory_bytes(), 4 * nodes(&eager));
+    let preview = Preview::new(field.clone(), MultipleScattering::Lattice(Arc::new(lazy)), 0.01).unwrap();
+    assert!(preview.memory_bytes() > field.memory_bytes() + (3 << 20));
+}

@@ -114,17 +114,25 @@ impl MultipleScattering {
 pub struct LearnedLattice {
     near: ScalarLattice,
     far: Option<ScalarLattice>,
+    /// Bytes the lazy lattices' source keeps alive (the model's fields).
+    source_bytes: usize,
 }
 
 impl LearnedLattice {
     /// One lattice for every depth.
     pub fn single(lattice: ScalarLattice) -> Self {
-        LearnedLattice { near: lattice, far: None }
+        LearnedLattice { near: lattice, far: None, source_bytes: 0 }
     }
 
     /// The lattice read down to [`FAR_TRANSMITTANCE`], and the one read beyond it.
     pub fn two_tier(near: ScalarLattice, far: ScalarLattice) -> Self {
-        LearnedLattice { near, far: Some(far) }
+        LearnedLattice { near, far: Some(far), source_bytes: 0 }
+    }
+
+    /// The same lattices, stating that their source holds `bytes` (lazy lattices keep
+    /// the model, and its fields, until every node is filled).
+    pub fn holding(self, bytes: usize) -> Self {
+        LearnedLattice { source_bytes: bytes, ..self }
     }
 
     /// L_ms at `x` for a march whose camera transmittance is `tr`.
@@ -141,8 +149,10 @@ impl LearnedLattice {
         self.near.nodes()
     }
 
+    /// Bytes held: the lattices and, while they are filled lazily, the model's fields
+    /// their source keeps.
     pub fn memory_bytes(&self) -> usize {
-        self.near.memory_bytes() + self.far.as_ref().map_or(0, |f| f.memory_bytes())
+        self.near.memory_bytes() + self.far.as_ref().map_or(0, |f| f.memory_bytes()) + self.source_bytes
     }
 }
 
@@ -174,7 +184,8 @@ impl Preview {
         &self.multiple
     }
 
-    /// Bytes held by the fields: the sun's transmittance and a learned lattice.
+    /// Bytes held by the fields: the sun's transmittance and a learned lattice (with
+    /// the model's fields it keeps).
     pub fn memory_bytes(&self) -> usize {
         let lattice = match &self.multiple {
             MultipleScattering::Lattice(l) => l.memory_bytes(),
@@ -217,6 +228,7 @@ impl Preview {
             ));
         };
         let total = predictor.predicts_single_scattering();
+        let model_bytes = predictor.memory_bytes();
         let sun = sun.clone();
         let source = move |spacing: Vec3| -> NodeSource {
             let (medium, predictor, sun) = (medium.clone(), predictor.clone(), sun.clone());
@@ -239,6 +251,7 @@ impl Preview {
         let near = ScalarLattice::lazy(n, origin, spacing, source(spacing));
         let (nf, spacing_far) = lattice_over(&scene.medium, FAR_LATTICE_NODES);
         LearnedLattice::two_tier(near, ScalarLattice::lazy(nf, origin, spacing_far, source(spacing_far)))
+            .holding(model_bytes)
     }
 
     /// One sample of the radiance arriving at `o` from direction `-d`, split into the

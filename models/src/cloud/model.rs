@@ -226,6 +226,10 @@ impl InScatterPredictor for BoundCloudModel {
         false
     }
 
+    fn memory_bytes(&self) -> usize {
+        self.field.memory_bytes()
+    }
+
     fn name(&self) -> &str {
         "cloud-aware MLP"
     }

@@ -470,6 +470,10 @@ impl InScatterPredictor for BoundGlobalModel {
         self.model.target == TargetKind::Total
     }
 
+    fn memory_bytes(&self) -> usize {
+        self.field.memory_bytes() + self.sky.as_ref().map_or(0, |s| s.memory_bytes())
+    }
+
     fn name(&self) -> &str {
         "global MLP (depth field)"
     }
