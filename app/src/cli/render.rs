@@ -251,6 +251,9 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if film.rejected_samples() > 0 {
         eprintln!("warning: {} non-finite samples were dropped", film.rejected_samples());
     }
+    // The noise is measured from the per-pixel variance, unknown below two samples
+    // per pixel: null then, as is the efficiency, rather than a noise of 0.
+    let noise = (film.spp() >= 2).then(|| film.relative_noise(Buffer::Full)).filter(|n| n.is_finite() && *n > 0.0);
     let summary = serde_json::json!({
         "spp": film.spp(),
         "seconds": outcome.render_secs,
@@ -260,12 +263,13 @@ pub fn render(args: RenderArgs) -> Result<()> {
         "threads": threads,
         "stopped_early": outcome.stopped,
         "mean_full": film.average(Buffer::Full),
-        "relative_noise": film.relative_noise(Buffer::Full),
+        "relative_noise": noise,
         // Inverse of (relative variance x seconds): higher is better, comparable
         // between integrators on the same scene and machine.
-        "efficiency": 1.0 / (film.relative_noise(Buffer::Full).powi(2) * outcome.render_secs).max(1e-300),
+        "efficiency": noise.map(|n| 1.0 / (n * n * outcome.render_secs).max(1e-300)),
         "mode": mode,
-        // The preview's fields (sun transmittance and learned lattice), in MiB.
+        // What the preview keeps (the sun's transmittance, the learned lattice and the
+        // model's fields it holds), in MiB.
         "preview_fields_mib": preview_mib,
         "out": args.out,
     });
