@@ -9,6 +9,13 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
+/// Checks `--predictor` as clap parses it: a shipped model's name
+/// ([`models::prediction::PredictorKind`]), kept as given.
+pub fn predictor_arg(s: &str) -> Result<String, String> {
+    use models::prediction::PredictorKind;
+    PredictorKind::parse(s).map(|_| s.to_string()).ok_or_else(|| format!("choose {}", PredictorKind::NAMES))
+}
+
 /// Starts the render threads: `threads` of them, or all cores when None.
 pub fn init_threads(threads: Option<usize>) -> Result<usize> {
     if let Some(n) = threads {

@@ -75,7 +75,7 @@ pub struct RenderArgs {
     /// The shipped model without --model: auto (the default: the cloud-aware model
     /// under a sun alone, the thesis's global model under a sky or a soft sun), cloud
     /// or global. Overrides the scene's render.predictor.
-    #[arg(long)]
+    #[arg(long, value_parser = super::common::predictor_arg)]
     pub predictor: Option<String>,
     /// Light transport: path (default) or bdpt (volumetric bidirectional path
     /// tracing with MIS); overrides the scene's render.integrator.
@@ -165,9 +165,6 @@ pub fn render(args: RenderArgs) -> Result<()> {
         file.render.model = Some(std::path::absolute(m)?.display().to_string());
     }
     if let Some(p) = &args.predictor {
-        if models::prediction::PredictorKind::parse(p).is_none() {
-            anyhow::bail!("--predictor {p:?}: choose {}", models::prediction::PredictorKind::NAMES);
-        }
         file.render.predictor = p.clone();
     }
     if let Some(m) = &args.p2p_model {

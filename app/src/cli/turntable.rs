@@ -57,7 +57,7 @@ pub struct TurntableArgs {
           conflicts_with_all = ["predict", "reference"])]
     pub preview: Option<String>,
     /// The shipped model: auto, cloud or global (overrides the scene's render.predictor).
-    #[arg(long)]
+    #[arg(long, value_parser = super::common::predictor_arg)]
     pub predictor: Option<String>,
     /// Override the resolution: WIDTHxHEIGHT.
     #[arg(long)]
@@ -195,9 +195,6 @@ pub fn turntable(args: TurntableArgs) -> Result<()> {
         (file.render.mode, file.render.preview) = ("preview".into(), which.clone());
     }
     if let Some(p) = &args.predictor {
-        if models::prediction::PredictorKind::parse(p).is_none() {
-            bail!("--predictor {p:?}: choose {}", models::prediction::PredictorKind::NAMES);
-        }
         file.render.predictor = p.clone();
     }
     // Relative files of the scene keep working from the folder nimbus runs in.

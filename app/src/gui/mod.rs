@@ -1211,7 +1211,6 @@ impl NimbusApp {
 
     /// The render's target: until the next change, a number of samples per pixel or
     /// of seconds.
-
     fn target_controls(&mut self, ui: &mut egui::Ui) {
         ui.horizontal_wrapped(|ui| {
             ui.label("stop at").on_hover_text("the render stops there and says done; any change starts it again");

@@ -621,9 +621,10 @@ impl DensityPyramid {
             made(2, &|| blur(&raw, 0.0, 2.0 - tent), &raw)?,
         ];
         for (m, level) in octaves.into_iter().enumerate() {
-            let half = match m + 1 < n_oct {
-                true => Some(made(levels.len() + 1, &|| blur(&level, base, 8.0 - tent), &level)?),
-                false => None,
+            let half = if m + 1 < n_oct {
+                Some(made(levels.len() + 1, &|| blur(&level, base, 8.0 - tent), &level)?)
+            } else {
+                None
             };
             levels.push(if needed[levels.len()] { level } else { empty(&level) });
             levels.extend(half);

@@ -35,7 +35,7 @@ pub struct BenchLatencyArgs {
     pub settle_ms: u64,
     /// The shipped model of the first look and of prediction: auto (the default, as
     /// the window's), cloud or global.
-    #[arg(long, default_value = "auto")]
+    #[arg(long, default_value = "auto", value_parser = crate::cli::common::predictor_arg)]
     pub predictor: String,
 }
 
@@ -148,9 +148,6 @@ pub fn bench_latency(args: BenchLatencyArgs) -> Result<()> {
     use crate::gui::worker::WorkerHandle;
     let worker = WorkerHandle::start(|| {});
     let mut base = crate::gui::default_scene();
-    if models::prediction::PredictorKind::parse(&args.predictor).is_none() {
-        bail!("--predictor {:?}: choose {}", args.predictor, models::prediction::PredictorKind::NAMES);
-    }
     base.render.predictor = args.predictor.clone();
     let first_image = |scene: &SceneFile, coarse: bool| -> Result<f64> {
         let t = std::time::Instant::now();

@@ -81,7 +81,7 @@ pub struct EvalArgs {
     /// The shipped model used without --model: auto (the default: the cloud-aware
     /// model, or the global one with --sky, whose light the cloud-aware model does not
     /// answer), cloud or global.
-    #[arg(long, default_value = "auto")]
+    #[arg(long, default_value = "auto", value_parser = crate::cli::common::predictor_arg)]
     pub predictor: String,
     /// Also measure path tracing's time to preview (a second path-traced run per
     /// configuration, another seed, until 5 % relative RMSE against the reference, its
