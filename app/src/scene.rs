@@ -781,7 +781,7 @@ impl SceneFile {
         if self.render.integrator == "bdpt" {
             return self.bdpt_prediction(scene, cache);
         }
-        match self.bound_model(scene, max_nodes, cache, cancel)? {
+        match self.bound_model(scene, max_nodes, None, cache, cancel)? {
             Ok(bound) => Ok(IntegratorSetup { integrator: self.integrator_with(Some(bound))?, warning: None }),
             Err(e) => {
                 let mut reference = self.clone();
@@ -797,17 +797,25 @@ impl SceneFile {
     /// The model of prediction at bounce k bound to `scene`'s cloud and sun (fields of
     /// at most `max_nodes` per axis), from `cache` when it holds this binding, else
     /// loaded, bound and left there; the inner error is a model that cannot be loaded.
+    /// With `shared_sun` (the preview's sun field and its nodes per axis) a cloud-aware
+    /// model reads that field instead of building its own
+    /// ([`PredictionModel::bind_scene_with_sun`]), a binding cached apart from
+    /// prediction mode's.
     fn bound_model(
         &self,
         scene: &Scene,
         max_nodes: u32,
+        shared_sun: Option<(&Arc<SunTransmittance>, u32)>,
         cache: &mut PredictorCache,
         cancel: Cancel,
     ) -> Result<Result<Arc<dyn InScatterPredictor>, ModelError>, SceneError> {
         if scene.sun.is_none() {
             return Err(SceneError::Invalid("prediction needs a sun".into()));
         }
-        let key = PredictorKey::new(self, scene, max_nodes);
+        // Only the cloud-aware model reads a sun field; the global model's binding is
+        // the same either way, and prediction mode's is reused.
+        let shared_sun = shared_sun.filter(|_| self.predictor_kind() == PredictorKind::Cloud);
+        let key = PredictorKey { shared_sun: shared_sun.map_or(0, |s| s.1), ..PredictorKey::new(self, scene, max_nodes) };
         if let Some(i) = cache.bound.iter().position(|(k, _)| *k == key) {
             // Most recently used first.
             let hit = cache.bound.remove(i);
@@ -820,7 +828,11 @@ impl SceneFile {
             Err(e) => return Ok(Err(e)),
         };
         // With a sun (checked above) None is a cancelled build.
-        let bound = model.bind_scene(scene, max_nodes, cancel).ok_or(SceneError::Cancelled)?;
+        let bound = match shared_sun {
+            Some((field, _)) => model.bind_scene_with_sun(scene, field, max_nodes, cancel),
+            None => model.bind_scene(scene, max_nodes, cancel),
+        };
+        let bound = bound.ok_or(SceneError::Cancelled)?;
         cache.bound.insert(0, (key, bound.clone()));
         cache.bound.truncate(PredictorCache::BINDINGS);
         Ok(Ok(bound))
@@ -871,7 +883,7 @@ impl SceneFile {
         let multiple = if self.render.preview == "octaves" {
             self.octaves()
         } else {
-            match self.bound_model(scene, max_nodes, cache, cancel)? {
+            match self.bound_model(scene, max_nodes, Some((&field, sun_nodes)), cache, cancel)? {
                 Ok(predictor) => MultipleScattering::Lattice(Arc::new(Preview::learned_lattice(
                     scene,
                     &field,
@@ -953,6 +965,9 @@ struct PredictorKey {
     nodes: u32,
     /// Whether the binding answers other lights too (a sky, a soft sun).
     other_lights: bool,
+    /// The nodes per axis of the preview's sun field that a cloud-model binding
+    /// reads instead of its own (0: its own).
+    shared_sun: u32,
 }
 
 /// The models bound last (see [`SceneFile::integrator_cached`]). Holding them keeps their
@@ -995,6 +1010,7 @@ impl PredictorKey {
             predictor: file.predictor_kind().name(),
             nodes,
             other_lights: models::prediction::needs_other_lights(scene),
+            shared_sun: 0,
         }
     }
 }

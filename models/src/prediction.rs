@@ -8,6 +8,7 @@
 use crate::cloud::{BoundCloudModel, CloudModel};
 use crate::global::model::ModelError;
 use crate::global::{BoundGlobalModel, GlobalModel};
+use engine::field::SunTransmittance;
 use engine::{Cancel, InScatterPredictor, Medium, Scene, Sky, Sun};
 use std::path::Path;
 use std::sync::Arc;
@@ -142,6 +143,32 @@ impl PredictionModel {
             ),
             _ => self.bind(&scene.medium, sun, max_nodes, cancel)?,
         })
+    }
+
+    /// [`PredictionModel::bind_scene`] for the preview, which holds `sun_field`, the
+    /// sun's transmittance over this scene's cloud (at least as fine as the cloud
+    /// model's own field would be): the cloud model reads it instead of a field of its
+    /// own, so the preview keeps one sun field, not two. The global model's fields are
+    /// of another kind and built as by `bind_scene`.
+    pub fn bind_scene_with_sun(
+        &self,
+        scene: &Scene,
+        sun_field: &Arc<SunTransmittance>,
+        max_nodes: u32,
+        cancel: Cancel,
+    ) -> Option<Arc<dyn InScatterPredictor>> {
+        let sun = scene.sun.as_ref()?;
+        match self {
+            PredictionModel::Cloud(m) => Some(Arc::new(BoundCloudModel::with_sun_field_until(
+                m.clone(),
+                &scene.medium,
+                sun,
+                sun_field.clone(),
+                (2 * max_nodes).clamp(2, 256),
+                cancel,
+            )?)),
+            PredictionModel::Global(_) => self.bind_scene(scene, max_nodes, cancel),
+        }
     }
 }
 

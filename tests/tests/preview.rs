@@ -337,3 +337,29 @@ fn learned_lattice_counts_the_fields_its_model_keeps() {
     let preview = Preview::new(field.clone(), MultipleScattering::Lattice(Arc::new(lazy)), 0.01).unwrap();
     assert!(preview.memory_bytes() > field.memory_bytes() + (3 << 20));
 }
+
+/// The learned preview's cloud-aware model reads the preview's own sun field rather
+/// than a second one: what the lazy lattice's source keeps is the model's density
+/// pyramid alone, and the preview states its sun field, its lattices and that pyramid.
+#[test]
+fn learned_preview_keeps_one_sun_field() {
+    use app::scene::SceneFile;
+    use engine::InScatterPredictor;
+    use models::cloud::{BoundCloudModel, CloudModel};
+    let toml = "seed = 3\n[grid]\nbuiltin = \"sphere\"\nresolution = 48\n[medium]\nrho = 20.0\nalbedo = 1.0\n\
+                phase = \"hg\"\ng = 0.85\n[sun]\ndirection = [0.5, -0.7, 0.5]\n[camera]\npreset = \"toplit\"\n\
+                width = 16\nheight = 16\n[render]\nmode = \"preview\"\npredictor = \"cloud\"\npreview_nodes = 48\n";
+    let file = SceneFile::from_toml_str(toml, "sphere").unwrap();
+    let scene = Arc::new(file.build_scene(Some(Arc::new(file.build_grid().unwrap()))).unwrap());
+    let setup = file.integrator(&scene, 16).unwrap();
+    assert!(setup.warning.is_none(), "{:?}", setup.warning);
+    let preview = setup.integrator.preview_state().expect("a preview");
+    let MultipleScattering::Lattice(lattice) = preview.multiple() else { panic!("a learned preview") };
+    assert!(lattice.nodes().element_product() > engine::integrator::preview::EAGER_LATTICE_NODES, "a lazy lattice");
+    // The binding prediction mode makes for the same field size, with its own sun field.
+    let own = BoundCloudModel::new(CloudModel::shipped().unwrap(), &scene.medium, scene.sun.as_ref().unwrap(), 32);
+    let pyramid = own.memory_bytes() - own.field().sun_field().memory_bytes();
+    assert!(pyramid > 0);
+    assert_eq!(lattice.source_bytes(), pyramid);
+    assert_eq!(preview.memory_bytes(), preview.sun_transmittance().memory_bytes() + lattice.memory_bytes());
+}

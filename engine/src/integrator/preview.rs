@@ -149,6 +149,11 @@ impl LearnedLattice {
         self.near.nodes()
     }
 
+    /// Bytes the lazy lattices' source keeps (the model's fields; 0 once filled).
+    pub fn source_bytes(&self) -> usize {
+        self.source_bytes
+    }
+
     /// Bytes held: the lattices and, while they are filled lazily, the model's fields
     /// their source keeps.
     pub fn memory_bytes(&self) -> usize {

@@ -89,7 +89,9 @@ pub fn offset(p: usize) -> Vec3 {
 #[derive(Clone, Debug)]
 pub struct CloudField {
     pyramid: Arc<DensityPyramid>,
-    sun: SunTransmittance,
+    sun: Arc<SunTransmittance>,
+    /// Whether `sun` is another's (the preview's), which that owner counts.
+    shared_sun: bool,
     blends: [LevelBlend; LEVELS],
     h: [f32; LEVELS],
     rho: f32,
@@ -108,20 +110,57 @@ impl CloudField {
     /// [`CloudField::build`], or None when `cancel` asks to stop (the sun field
     /// checks it per column, the pyramid between its filter passes).
     pub fn build_until(medium: &Medium, sun: &Sun, max_nodes: u32, cancel: Cancel) -> Option<Self> {
-        let h0 = medium.bounds().extent().max_element() / BASE_DIVISIONS;
-        let h: [f32; LEVELS] = std::array::from_fn(|l| h0 * (1u32 << l) as f32);
+        let h = Self::widths(medium);
         let (pyramid, field) = rayon::join(
             || shared_pyramid(medium.grid(), &h.map(|h| 0.5 * h), pyramid_axis(max_nodes), cancel),
             || SunTransmittance::build_until(medium, sun, max_nodes, cancel),
         );
-        let (pyramid, field) = (pyramid?, field?);
-        let blends = std::array::from_fn(|l| pyramid.select(0.5 * h[l]));
-        Some(CloudField { pyramid, w: field.to_sun(), sun: field, blends, h, rho: medium.rho() })
+        Some(Self::assemble(medium, pyramid?, Arc::new(field?), false, h))
     }
 
-    /// Bytes held.
+    /// The field of [`CloudField::build_until`] reading `sun_field`, built by the
+    /// caller for this medium and sun (the preview's, at least as fine as the
+    /// `max_nodes` it stands for), instead of a sun field of its own; only the
+    /// pyramid is built, or found (see [`shared_pyramid`]). Its memory is left to the
+    /// caller to count ([`CloudField::memory_bytes`]).
+    pub fn with_sun_field_until(
+        medium: &Medium,
+        sun_field: Arc<SunTransmittance>,
+        max_nodes: u32,
+        cancel: Cancel,
+    ) -> Option<Self> {
+        let h = Self::widths(medium);
+        let pyramid = shared_pyramid(medium.grid(), &h.map(|h| 0.5 * h), pyramid_axis(max_nodes), cancel)?;
+        Some(Self::assemble(medium, pyramid, sun_field, true, h))
+    }
+
+    /// The stencil's spacing per level: h_0 2^l, h_0 the box's largest extent over
+    /// [`BASE_DIVISIONS`].
+    fn widths(medium: &Medium) -> [f32; LEVELS] {
+        let h0 = medium.bounds().extent().max_element() / BASE_DIVISIONS;
+        std::array::from_fn(|l| h0 * (1u32 << l) as f32)
+    }
+
+    fn assemble(
+        medium: &Medium,
+        pyramid: Arc<DensityPyramid>,
+        sun: Arc<SunTransmittance>,
+        shared_sun: bool,
+        h: [f32; LEVELS],
+    ) -> Self {
+        let blends = std::array::from_fn(|l| pyramid.select(0.5 * h[l]));
+        CloudField { pyramid, w: sun.to_sun(), sun, shared_sun, blends, h, rho: medium.rho() }
+    }
+
+    /// Bytes held: the pyramid and the sun field, unless the sun field is shared
+    /// ([`CloudField::with_sun_field_until`]: its owner counts it).
     pub fn memory_bytes(&self) -> usize {
-        self.pyramid.bytes() + self.sun.memory_bytes()
+        self.pyramid.bytes() + if self.shared_sun { 0 } else { self.sun.memory_bytes() }
+    }
+
+    /// The sun-transmittance field the features read.
+    pub fn sun_field(&self) -> &Arc<SunTransmittance> {
+        &self.sun
     }
 
     /// The stencil frame at a query: (u, v, w) with w toward the sun and `omega` in the
@@ -503,6 +542,48 @@ mod tests {
         b.features(0.9, 0.5, Vec3::new(0.1, 0.0, 0.05), Vec3::X, &mut fb);
         assert_eq!(fa, fb);
         assert!(fa.iter().all(|v| v.is_finite()));
+    }
+
+    /// A field reading a sun field built by its caller (the preview's) gives the
+    /// features of one that built the same field itself, bit for bit, shares the
+    /// caller's field and pyramid, and counts the pyramid only; another field changes
+    /// the sun's features and nothing else.
+    #[test]
+    fn a_shared_sun_field_reads_as_its_own() {
+        let m = blob_medium();
+        let sun = Sun::new(Vec3::new(0.4, -1.0, 0.3), Vec3::ONE, 0.0).unwrap();
+        let own = CloudField::build(&m, &sun, 24);
+        let field = Arc::new(SunTransmittance::build(&m, &sun, 24));
+        let shared = CloudField::with_sun_field_until(&m, field.clone(), 24, Cancel::NEVER).unwrap();
+        assert!(Arc::ptr_eq(shared.sun_field(), &field));
+        assert!(Arc::ptr_eq(&own.pyramid, &shared.pyramid));
+        assert_eq!(own.memory_bytes(), shared.memory_bytes() + field.memory_bytes());
+        assert_eq!(shared.memory_bytes(), shared.pyramid.bytes());
+        let finer = CloudField::with_sun_field_until(
+            &m,
+            Arc::new(SunTransmittance::build(&m, &sun, 96)),
+            24,
+            Cancel::NEVER,
+        )
+        .unwrap();
+        let (mut fo, mut fs, mut ff) = (vec![0.0; N_FEATURES], vec![0.0; N_FEATURES], vec![0.0; N_FEATURES]);
+        let names = feature_names();
+        let mut moved = 0;
+        for (i, x) in [Vec3::new(0.1, 0.0, 0.05), Vec3::new(-0.2, 0.1, 0.0), Vec3::ZERO].into_iter().enumerate() {
+            let omega = Vec3::new(1.0, 0.2 * i as f32, -0.3).normalize();
+            own.features(0.95, 0.8, x, omega, &mut fo);
+            shared.features(0.95, 0.8, x, omega, &mut fs);
+            finer.features(0.95, 0.8, x, omega, &mut ff);
+            assert_eq!(fo, fs);
+            for (j, (a, b)) in fo.iter().zip(&ff).enumerate() {
+                if names[j].starts_with("tau_sun") {
+                    moved += (a != b) as usize;
+                } else {
+                    assert_eq!(a, b, "{}", names[j]);
+                }
+            }
+        }
+        assert!(moved > 0, "the finer field is another field");
     }
 
     /// The fields of one grid share its pyramid whatever the sun, rho and sun-field

@@ -12,6 +12,7 @@ use super::features::{CloudField, N_FEATURES, feature_names};
 use crate::global::model::{ModelError, read_model_files, shipped_once};
 use crate::nn::dense::Activation;
 use crate::nn::mlp::{Mlp, Scratch};
+use engine::field::SunTransmittance;
 use engine::{Cancel, DensityGrid, InScatterPredictor, Medium, Sun};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -182,6 +183,32 @@ impl BoundCloudModel {
         Some(BoundCloudModel {
             model,
             field: Arc::new(CloudField::build_until(medium, sun, max_nodes, cancel)?),
+            grid: medium.grid().clone(),
+            rho: medium.rho(),
+            omega_l: sun.direction(),
+        })
+    }
+
+    /// [`BoundCloudModel::new_until`] reading `sun_field`, the caller's field for this
+    /// medium and sun (the preview's), instead of building one; the pyramid is read
+    /// from at most `2 max_nodes` samples per axis as with a field of its own. Its
+    /// memory leaves the shared field to the caller
+    /// ([`CloudField::with_sun_field_until`]).
+    pub fn with_sun_field_until(
+        model: Arc<CloudModel>,
+        medium: &Medium,
+        sun: &Sun,
+        sun_field: Arc<SunTransmittance>,
+        max_nodes: u32,
+        cancel: Cancel,
+    ) -> Option<Self> {
+        debug_assert!(
+            (sun_field.to_sun() + sun.direction()).length() < 1e-4,
+            "a sun field built for another sun"
+        );
+        Some(BoundCloudModel {
+            model,
+            field: Arc::new(CloudField::with_sun_field_until(medium, sun_field, max_nodes, cancel)?),
             grid: medium.grid().clone(),
             rho: medium.rho(),
             omega_l: sun.direction(),

@@ -359,6 +359,21 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 })
                 .clone()
         };
+        // The preview's binding: a cloud-aware model reads the preview's sun field
+        // (as `nimbus render --preview learned` does); the global model's is the one
+        // above.
+        let bind_preview = |field: &Arc<engine::field::SunTransmittance>| -> super::preview::Bound {
+            match &model {
+                PredictionModel::Cloud(_) => {
+                    let t = Instant::now();
+                    let b = model
+                        .bind_scene_with_sun(&scene, field, args.field_nodes, engine::Cancel::NEVER)
+                        .expect("evaluation scenes have a sun");
+                    (b, t.elapsed().as_secs_f64())
+                }
+                PredictionModel::Global(_) => bind(),
+            }
+        };
         let mut group_cells = vec![];
         for (ki, &k) in args.k.iter().enumerate() {
             let kbase = base + args.spp_ref as u64 + ki as u64 * args.spp as u64;
@@ -438,7 +453,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 scene: &scene,
                 reference: &reference,
                 mask: &mask,
-                bound: &bind,
+                bound: &bind_preview,
                 field_nodes: args.field_nodes,
                 spp: args.preview_passes.max(2),
                 control: &control,

@@ -47,8 +47,7 @@ pub struct PreviewCell {
     pub curve: Vec<(f64, f64)>,
 }
 
-/// The bound model of prediction at bounce k and the seconds it took to build (once per configuration,
-/// shared with the prediction cells).
+/// A bound model and the seconds its fields took to build.
 pub type Bound = (Arc<dyn InScatterPredictor>, f64);
 
 /// The preview techniques, in the order of the tables and the sheet.
@@ -67,8 +66,10 @@ pub struct PreviewJob<'a> {
     pub scene: &'a Arc<Scene>,
     pub reference: &'a Image,
     pub mask: &'a [bool],
-    /// The model bound to this cloud and sun (built on first use).
-    pub bound: &'a dyn Fn() -> Bound,
+    /// The model bound to this cloud and sun for the preview, given the preview's sun
+    /// field (which a cloud-aware model reads instead of its own, as the renderer's
+    /// preview does).
+    pub bound: &'a dyn Fn(&Arc<SunTransmittance>) -> Bound,
     /// The model's field nodes per axis `bound` builds (`--field-nodes`).
     pub field_nodes: u32,
     /// Passes of each preview render.
@@ -103,7 +104,7 @@ impl PreviewJob<'_> {
         // The learned preview: the model bound to the cloud and sun, its lattice for
         // this camera.
         let learned = || -> Result<(MultipleScattering, f64)> {
-            let (bound, bound_secs) = (self.bound)();
+            let (bound, bound_secs) = (self.bound)(&field);
             let t = Instant::now();
             let lattice = Preview::learned_lattice(
                 self.scene,
@@ -137,7 +138,7 @@ impl PreviewJob<'_> {
     /// another image).
     fn cache_paths(&self, technique: &str) -> (std::path::PathBuf, std::path::PathBuf) {
         let lattice = if technique == TECHNIQUES[0] {
-            format!("_nodes{}_fields{}", self.file.render.preview_nodes, self.field_nodes)
+            format!("_nodes{}_fields{}_sunshared", self.file.render.preview_nodes, self.field_nodes)
         } else {
             String::new()
         };
