@@ -299,6 +299,13 @@ pub fn shared_pyramid(
     Some(pyramid)
 }
 
+/// Empties [`shared_pyramid`]'s cache, so that the next binding of any cloud builds
+/// its pyramid as for a new cloud (pyramids that fields hold stay with them). For
+/// measurements of a new cloud's set-up (`nimbus eval --preview`).
+pub fn forget_pyramids() {
+    PYRAMIDS.lock().unwrap_or_else(|p| p.into_inner()).clear();
+}
+
 /// Points of one stencil plane (fixed c): 3 x 3.
 pub const PLANE: usize = 9;
 /// Features of one plane: centre, ring mean, seven scaled deviations, gradient, the

@@ -214,6 +214,12 @@ pub struct BiasReport {
     /// |bias| per cloud: median and 90th percentile.
     pub cloud_abs_bias_median: f64,
     pub cloud_abs_bias_p90: f64,
+    /// Point by point: sqrt(mean((prediction - target)^2 - se^2)) / mean(target), the
+    /// error an image of these points would show pixel by pixel (its RMSE floor, in
+    /// the form of `relative_rmse_less`), with the targets' own noise removed; errors
+    /// of opposite sign at different points, which cancel in `bias`, add up here.
+    #[serde(default)]
+    pub point_rmse: f64,
 }
 
 /// The relative bias of `model` on `rows` of `features`/`targets` (5 columns, the
@@ -227,13 +233,14 @@ pub fn bias_report(
 ) -> BiasReport {
     let mut scratch = model.mlp.scratch();
     let mut per: std::collections::BTreeMap<(u32, u64), (f64, f64)> = Default::default();
-    let (mut sp, mut st, mut var) = (0.0f64, 0.0f64, 0.0f64);
+    let (mut sp, mut st, mut var, mut sq) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
     for &i in rows {
         let p = model.predict_features(&features[i * N_FEATURES..(i + 1) * N_FEATURES], &mut scratch) as f64;
         let (t, se) = (targets[i * 5] as f64, targets[i * 5 + 1] as f64);
         sp += p;
         st += t;
         var += se * se;
+        sq += (p - t) * (p - t) - se * se;
         let e = per.entry(clouds[i]).or_default();
         e.0 += p;
         e.1 += t;
@@ -249,6 +256,7 @@ pub fn bias_report(
         bias_std_error: if st > 0.0 { (sp / st) * var.sqrt() / st } else { f64::NAN },
         cloud_abs_bias_median: q(0.5),
         cloud_abs_bias_p90: q(0.9),
+        point_rmse: if st > 0.0 { (sq.max(0.0) / rows.len() as f64).sqrt() / (st / rows.len() as f64) } else { f64::NAN },
     }
 }
 

@@ -1,6 +1,7 @@
 //! `nimbus eval cloud-points`: a cloud-aware model's relative bias on point data sets
 //! (`nimbus datagen cloud`), overall, per scattering vertex of the camera path and per
-//! cloud. With `datagen cloud --sun ... --view-sun-cos ...` the points reproduce one
+//! cloud, and point by point (the RMS error an image of the points would show, the
+//! targets' noise removed). With `datagen cloud --sun ... --view-sun-cos ...` the points reproduce one
 //! lighting of `nimbus eval`, in seconds instead of an image study.
 
 use anyhow::Result;
@@ -40,8 +41,10 @@ pub fn eval_cloud_points(args: &EvalCloudPointsArgs) -> Result<Vec<PointsRow>> {
             .map(|p| Ok((p.display().to_string(), Arc::new(CloudModel::load(p)?))))
             .collect::<Result<_>>()?
     };
-    println!("| data | model | points | bias (se) | vertex 1 | vertex 2 | vertex 3 | per-cloud median, p90 |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!(
+        "| data | model | points | bias (se) | vertex 1 | vertex 2 | vertex 3 | per-cloud median, p90 | point RMS error |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
     let mut rows = vec![];
     for dir in &args.data {
         let ds = CloudDataset::load(dir)?;
@@ -56,7 +59,7 @@ pub fn eval_cloud_points(args: &EvalCloudPointsArgs) -> Result<Vec<PointsRow>> {
             let all = report(&all_rows);
             let pct = |r: &Option<BiasReport>| r.as_ref().map_or("-".into(), |r| format!("{:+.2} %", 100.0 * r.bias));
             println!(
-                "| {} | {name} | {} | {:+.2} % ({:.2} %) | {} | {} | {} | {:.1} %, {:.1} % |",
+                "| {} | {name} | {} | {:+.2} % ({:.2} %) | {} | {} | {} | {:.1} %, {:.1} % | {:.1} % |",
                 dir.display(),
                 all.points,
                 100.0 * all.bias,
@@ -65,7 +68,8 @@ pub fn eval_cloud_points(args: &EvalCloudPointsArgs) -> Result<Vec<PointsRow>> {
                 pct(&by_vertex[1]),
                 pct(&by_vertex[2]),
                 100.0 * all.cloud_abs_bias_median,
-                100.0 * all.cloud_abs_bias_p90
+                100.0 * all.cloud_abs_bias_p90,
+                100.0 * all.point_rmse
             );
             rows.push(PointsRow { data: dir.display().to_string(), model: name.clone(), all, by_vertex });
         }

@@ -361,10 +361,12 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         };
         // The preview's binding: a cloud-aware model reads the preview's sun field
         // (as `nimbus render --preview learned` does); the global model's is the one
-        // above.
+        // above. Its seconds are those of a new cloud: the density pyramid is built
+        // again, not found from an earlier configuration of the same cloud.
         let bind_preview = |field: &Arc<engine::field::SunTransmittance>| -> super::preview::Bound {
             match &model {
                 PredictionModel::Cloud(_) => {
+                    models::cloud::features::forget_pyramids();
                     let t = Instant::now();
                     let b = model
                         .bind_scene_with_sun(&scene, field, args.field_nodes, engine::Cancel::NEVER)

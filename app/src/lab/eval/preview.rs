@@ -135,10 +135,11 @@ impl PreviewJob<'_> {
 
     /// The cache files of `technique`'s cell: (json, npy). The learned preview's name
     /// carries its lattice's nodes per axis and its model's field nodes (other ones,
-    /// another image).
+    /// another image), and "newcloud": its model reads the preview's sun field and its
+    /// set-up builds the density pyramid as for a new cloud.
     fn cache_paths(&self, technique: &str) -> (std::path::PathBuf, std::path::PathBuf) {
         let lattice = if technique == TECHNIQUES[0] {
-            format!("_nodes{}_fields{}_sunshared", self.file.render.preview_nodes, self.field_nodes)
+            format!("_nodes{}_fields{}_newcloud", self.file.render.preview_nodes, self.field_nodes)
         } else {
             String::new()
         };
