@@ -58,7 +58,7 @@ const SECOND_RUN_SEED: u64 = 0x5345_434f_4e44; // "SECOND"
 
 /// Part of every preview cache file's name: the preview's sampling and the floor's
 /// measurement as they are now (cells cached by an earlier form are made again).
-const CACHE_FORM: &str = "v2";
+const CACHE_FORM: &str = "v3";
 
 /// What the preview cells of one configuration share.
 pub struct PreviewJob<'a> {
