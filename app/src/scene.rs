@@ -815,7 +815,8 @@ impl SceneFile {
         // Only the cloud-aware model reads a sun field; the global model's binding is
         // the same either way, and prediction mode's is reused.
         let shared_sun = shared_sun.filter(|_| self.predictor_kind() == PredictorKind::Cloud);
-        let key = PredictorKey { shared_sun: shared_sun.map_or(0, |s| s.1), ..PredictorKey::new(self, scene, max_nodes) };
+        let key =
+            PredictorKey { shared_sun: shared_sun.map_or(0, |s| s.1), ..PredictorKey::new(self, scene, max_nodes) };
         if let Some(i) = cache.bound.iter().position(|(k, _)| *k == key) {
             // Most recently used first.
             let hit = cache.bound.remove(i);

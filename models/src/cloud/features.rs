@@ -566,13 +566,9 @@ mod tests {
         assert!(Arc::ptr_eq(&own.pyramid, &shared.pyramid));
         assert_eq!(own.memory_bytes(), shared.memory_bytes() + field.memory_bytes());
         assert_eq!(shared.memory_bytes(), shared.pyramid.bytes());
-        let finer = CloudField::with_sun_field_until(
-            &m,
-            Arc::new(SunTransmittance::build(&m, &sun, 96)),
-            24,
-            Cancel::NEVER,
-        )
-        .unwrap();
+        let finer =
+            CloudField::with_sun_field_until(&m, Arc::new(SunTransmittance::build(&m, &sun, 96)), 24, Cancel::NEVER)
+                .unwrap();
         let (mut fo, mut fs, mut ff) = (vec![0.0; N_FEATURES], vec![0.0; N_FEATURES], vec![0.0; N_FEATURES]);
         let names = feature_names();
         let mut moved = 0;

@@ -180,13 +180,18 @@ impl BoundCloudModel {
         max_nodes: u32,
         cancel: Cancel,
     ) -> Option<Self> {
-        Some(BoundCloudModel {
+        Some(Self::binding(model, CloudField::build_until(medium, sun, max_nodes, cancel)?, medium, sun))
+    }
+
+    /// The binding of `model` to `field`, built for `medium` and `sun`.
+    fn binding(model: Arc<CloudModel>, field: CloudField, medium: &Medium, sun: &Sun) -> Self {
+        BoundCloudModel {
             model,
-            field: Arc::new(CloudField::build_until(medium, sun, max_nodes, cancel)?),
+            field: Arc::new(field),
             grid: medium.grid().clone(),
             rho: medium.rho(),
             omega_l: sun.direction(),
-        })
+        }
     }
 
     /// [`BoundCloudModel::new_until`] reading `sun_field`, the caller's field for this
@@ -202,17 +207,9 @@ impl BoundCloudModel {
         max_nodes: u32,
         cancel: Cancel,
     ) -> Option<Self> {
-        debug_assert!(
-            (sun_field.to_sun() + sun.direction()).length() < 1e-4,
-            "a sun field built for another sun"
-        );
-        Some(BoundCloudModel {
-            model,
-            field: Arc::new(CloudField::with_sun_field_until(medium, sun_field, max_nodes, cancel)?),
-            grid: medium.grid().clone(),
-            rho: medium.rho(),
-            omega_l: sun.direction(),
-        })
+        debug_assert!((sun_field.to_sun() + sun.direction()).length() < 1e-4, "a sun field built for another sun");
+        let field = CloudField::with_sun_field_until(medium, sun_field, max_nodes, cancel)?;
+        Some(Self::binding(model, field, medium, sun))
     }
 
     pub fn model(&self) -> &Arc<CloudModel> {

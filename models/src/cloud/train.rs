@@ -256,7 +256,11 @@ pub fn bias_report(
         bias_std_error: if st > 0.0 { (sp / st) * var.sqrt() / st } else { f64::NAN },
         cloud_abs_bias_median: q(0.5),
         cloud_abs_bias_p90: q(0.9),
-        point_rmse: if st > 0.0 { (sq.max(0.0) / rows.len() as f64).sqrt() / (st / rows.len() as f64) } else { f64::NAN },
+        point_rmse: if st > 0.0 {
+            (sq.max(0.0) / rows.len() as f64).sqrt() / (st / rows.len() as f64)
+        } else {
+            f64::NAN
+        },
     }
 }
 
