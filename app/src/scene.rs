@@ -797,15 +797,14 @@ impl SceneFile {
     /// The model of prediction at bounce k bound to `scene`'s cloud and sun (fields of
     /// at most `max_nodes` per axis), from `cache` when it holds this binding, else
     /// loaded, bound and left there; the inner error is a model that cannot be loaded.
-    /// With `shared_sun` (the preview's sun field and its nodes per axis) a cloud-aware
-    /// model reads that field instead of building its own
-    /// ([`PredictionModel::bind_scene_with_sun`]), a binding cached apart from
-    /// prediction mode's.
+    /// With `shared_sun` (the preview's sun field) a cloud-aware model reads that field
+    /// instead of building its own ([`PredictionModel::bind_scene_with_sun`]), a
+    /// binding cached apart from prediction mode's and keyed on that very field.
     fn bound_model(
         &self,
         scene: &Scene,
         max_nodes: u32,
-        shared_sun: Option<(&Arc<SunTransmittance>, u32)>,
+        shared_sun: Option<&Arc<SunTransmittance>>,
         cache: &mut PredictorCache,
         cancel: Cancel,
     ) -> Result<Result<Arc<dyn InScatterPredictor>, ModelError>, SceneError> {
@@ -815,8 +814,10 @@ impl SceneFile {
         // Only the cloud-aware model reads a sun field; the global model's binding is
         // the same either way, and prediction mode's is reused.
         let shared_sun = shared_sun.filter(|_| self.predictor_kind() == PredictorKind::Cloud);
-        let key =
-            PredictorKey { shared_sun: shared_sun.map_or(0, |s| s.1), ..PredictorKey::new(self, scene, max_nodes) };
+        let key = PredictorKey {
+            shared_sun: shared_sun.map_or(0, |f| Arc::as_ptr(f) as usize),
+            ..PredictorKey::new(self, scene, max_nodes)
+        };
         if let Some(i) = cache.bound.iter().position(|(k, _)| *k == key) {
             // Most recently used first.
             let hit = cache.bound.remove(i);
@@ -830,7 +831,7 @@ impl SceneFile {
         };
         // With a sun (checked above) None is a cancelled build.
         let bound = match shared_sun {
-            Some((field, _)) => model.bind_scene_with_sun(scene, field, max_nodes, cancel),
+            Some(field) => model.bind_scene_with_sun(scene, field, max_nodes, cancel),
             None => model.bind_scene(scene, max_nodes, cancel),
         };
         let bound = bound.ok_or(SceneError::Cancelled)?;
@@ -884,7 +885,7 @@ impl SceneFile {
         let multiple = if self.render.preview == "octaves" {
             self.octaves()
         } else {
-            match self.bound_model(scene, max_nodes, Some((&field, sun_nodes)), cache, cancel)? {
+            match self.bound_model(scene, max_nodes, Some(&field), cache, cancel)? {
                 Ok(predictor) => MultipleScattering::Lattice(Arc::new(Preview::learned_lattice(
                     scene,
                     &field,
@@ -966,9 +967,11 @@ struct PredictorKey {
     nodes: u32,
     /// Whether the binding answers other lights too (a sky, a soft sun).
     other_lights: bool,
-    /// The nodes per axis of the preview's sun field that a cloud-model binding
-    /// reads instead of its own (0: its own).
-    shared_sun: u32,
+    /// The address of the preview's sun field that a cloud-model binding reads
+    /// instead of its own (0: its own). The binding holds the field, so the address
+    /// cannot be reused by another field while the key is cached; a binding always
+    /// reads the very field its preview holds, which counts it once.
+    shared_sun: usize,
 }
 
 /// The models bound last (see [`SceneFile::integrator_cached`]). Holding them keeps their

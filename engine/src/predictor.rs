@@ -46,8 +46,10 @@ pub trait InScatterPredictor: Send + Sync {
     }
 
     /// Bytes of what the predictor holds for its cloud and light (the fields its
-    /// features read; shared parts counted whole), so that a preview can state all the
-    /// memory it keeps. 0 for one that holds nothing per cloud.
+    /// features read; parts shared with other bindings counted whole, a field lent by
+    /// its caller, such as the preview's sun field, left to the caller), so that a
+    /// preview can state all the memory it keeps. 0 for one that holds nothing per
+    /// cloud.
     fn memory_bytes(&self) -> usize {
         0
     }

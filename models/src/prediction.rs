@@ -114,7 +114,7 @@ impl PredictionModel {
     ) -> Option<Arc<dyn InScatterPredictor>> {
         Some(match self {
             PredictionModel::Cloud(m) => {
-                Arc::new(BoundCloudModel::new_until(m.clone(), medium, sun, (2 * max_nodes).clamp(2, 256), cancel)?)
+                Arc::new(BoundCloudModel::new_until(m.clone(), medium, sun, cloud_sun_nodes(max_nodes), cancel)?)
             }
             PredictionModel::Global(m) => {
                 Arc::new(BoundGlobalModel::new_until(m.clone(), medium, sun, max_nodes, cancel)?)
@@ -164,12 +164,19 @@ impl PredictionModel {
                 &scene.medium,
                 sun,
                 sun_field.clone(),
-                (2 * max_nodes).clamp(2, 256),
+                cloud_sun_nodes(max_nodes),
                 cancel,
             )?)),
             PredictionModel::Global(_) => self.bind_scene(scene, max_nodes, cancel),
         }
     }
+}
+
+/// The cloud-aware model's sun-field nodes per axis for a binding of `max_nodes`: one
+/// value a node where the global model's depth field has 64, so twice as many, at
+/// most 256.
+fn cloud_sun_nodes(max_nodes: u32) -> u32 {
+    (2 * max_nodes).clamp(2, 256)
 }
 
 /// Whether prediction in `scene` asks about lights other than the sun's centre: a sky,
