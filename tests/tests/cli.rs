@@ -353,7 +353,8 @@ fn cloud_points_reports_a_models_bias_on_a_fixed_lighting() {
     .unwrap();
     let ds = CloudDataset::load(&data).unwrap();
     assert_eq!(ds.manifest.settings.sun, Some([0.0, -1.0, 0.0]));
-    let rows = eval_cloud_points(&EvalCloudPointsArgs { data: vec![data.clone()], model: vec![] }).unwrap();
+    let rows =
+        eval_cloud_points(&EvalCloudPointsArgs { data: vec![data.clone()], model: vec![], ensemble: false }).unwrap();
     assert_eq!(rows.len(), 1);
     let r = &rows[0];
     assert_eq!(r.all.points, 24);
@@ -401,6 +402,31 @@ fn cloud_points_reports_a_models_bias_on_a_fixed_lighting() {
         serde_json::from_str(&std::fs::read_to_string(out.with_extension("json")).unwrap()).unwrap();
     let fp = models::fingerprint::model_file_fingerprint(&shipped).unwrap();
     assert_eq!(side["training"]["teachers"], serde_json::json!([format!("{fp:016x}")]));
+    // The shipped model and the student, each alone and averaged (--ensemble): the
+    // ensemble's bias is that of the mean of the two predictions, recomputed here.
+    let student = out.with_extension("safetensors");
+    let rows = eval_cloud_points(&EvalCloudPointsArgs {
+        data: vec![data.clone()],
+        model: vec![shipped.clone(), student.clone()],
+        ensemble: true,
+    })
+    .unwrap();
+    assert_eq!(rows.len(), 3);
+    assert_eq!(rows[2].model, "ensemble of 2");
+    let student_model = models::cloud::CloudModel::load(&student).unwrap();
+    let mut scratch2 = student_model.mlp.scratch();
+    let (mut sp, mut sq) = (0.0f64, 0.0f64);
+    for (f, t) in ds.features.chunks_exact(N_FEATURES).zip(ds.targets.chunks_exact(5)) {
+        let a = model.predict_features(f, &mut scratch) as f64;
+        let b = student_model.predict_features(f, &mut scratch2) as f64;
+        sp += 0.5 * (a + b);
+        sq += (0.5 * (a + b) - t[0] as f64).powi(2) - (t[1] as f64).powi(2);
+    }
+    let mean_t = st / ds.len() as f64;
+    assert!((rows[2].all.bias - (sp / st - 1.0)).abs() < 1e-9, "{} vs {}", rows[2].all.bias, sp / st - 1.0);
+    let rmse = (sq.max(0.0) / ds.len() as f64).sqrt() / mean_t;
+    assert!((rows[2].all.point_rmse - rmse).abs() < 1e-9 * rmse.max(1.0), "{} vs {rmse}", rows[2].all.point_rmse);
+    assert!((rows[0].all.bias - r.all.bias).abs() < 1e-12, "the shipped model's row is its own");
     let e = train(guard.path().join("none.safetensors").to_str().unwrap()).unwrap_err();
     assert!(format!("{e:#}").contains("--teacher"), "{e:#}");
     let o = out.to_str().unwrap();

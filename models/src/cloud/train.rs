@@ -231,11 +231,26 @@ pub fn bias_report(
     clouds: &[(u32, u64)],
     rows: &[usize],
 ) -> BiasReport {
-    let mut scratch = model.mlp.scratch();
+    ensemble_bias_report(&[model], features, targets, clouds, rows)
+}
+
+/// [`bias_report`] of the mean of `models`' predictions (an ensemble, the target a
+/// student of them is distilled to; one model: its own report).
+pub fn ensemble_bias_report(
+    models: &[&CloudModel],
+    features: &[f32],
+    targets: &[f32],
+    clouds: &[(u32, u64)],
+    rows: &[usize],
+) -> BiasReport {
+    assert!(!models.is_empty(), "an ensemble of at least one model");
+    let mut scratch: Vec<_> = models.iter().map(|m| m.mlp.scratch()).collect();
     let mut per: std::collections::BTreeMap<(u32, u64), (f64, f64)> = Default::default();
     let (mut sp, mut st, mut var, mut sq) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
     for &i in rows {
-        let p = model.predict_features(&features[i * N_FEATURES..(i + 1) * N_FEATURES], &mut scratch) as f64;
+        let row = &features[i * N_FEATURES..(i + 1) * N_FEATURES];
+        let sum: f64 = models.iter().zip(&mut scratch).map(|(m, s)| m.predict_features(row, s) as f64).sum();
+        let p = sum / models.len() as f64;
         let (t, se) = (targets[i * 5] as f64, targets[i * 5 + 1] as f64);
         sp += p;
         st += t;

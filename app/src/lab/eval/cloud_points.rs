@@ -8,7 +8,7 @@ use anyhow::Result;
 use clap::Args;
 use models::cloud::CloudModel;
 use models::cloud::datagen::CloudDataset;
-use models::cloud::train::{BiasReport, bias_report};
+use models::cloud::train::{BiasReport, ensemble_bias_report};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -20,6 +20,10 @@ pub struct EvalCloudPointsArgs {
     /// Model files, comma separated (default: the shipped cloud-aware model).
     #[arg(long, value_delimiter = ',')]
     pub model: Vec<PathBuf>,
+    /// Also report the mean of the models' predictions as one more row ("ensemble"):
+    /// the target a student distilled from them is fitted to.
+    #[arg(long)]
+    pub ensemble: bool,
 }
 
 /// One row of the table: a data set, a model, the bias over all points and per vertex.
@@ -33,7 +37,7 @@ pub struct PointsRow {
 }
 
 pub fn eval_cloud_points(args: &EvalCloudPointsArgs) -> Result<Vec<PointsRow>> {
-    let models: Vec<(String, Arc<CloudModel>)> = if args.model.is_empty() {
+    let loaded: Vec<(String, Arc<CloudModel>)> = if args.model.is_empty() {
         vec![("shipped".into(), CloudModel::shipped()?)]
     } else {
         args.model
@@ -41,6 +45,12 @@ pub fn eval_cloud_points(args: &EvalCloudPointsArgs) -> Result<Vec<PointsRow>> {
             .map(|p| Ok((p.display().to_string(), Arc::new(CloudModel::load(p)?))))
             .collect::<Result<_>>()?
     };
+    // Each model alone, then (with --ensemble) all of them averaged.
+    let mut models: Vec<(String, Vec<Arc<CloudModel>>)> =
+        loaded.iter().map(|(name, m)| (name.clone(), vec![m.clone()])).collect();
+    if args.ensemble {
+        models.push((format!("ensemble of {}", loaded.len()), loaded.iter().map(|(_, m)| m.clone()).collect()));
+    }
     println!(
         "| data | model | points | bias (se) | vertex 1 | vertex 2 | vertex 3 | per-cloud median, p90 | point RMS error |"
     );
@@ -51,7 +61,8 @@ pub fn eval_cloud_points(args: &EvalCloudPointsArgs) -> Result<Vec<PointsRow>> {
         let clouds: Vec<(u32, u64)> = (0..ds.len()).map(|i| (0, ds.cloud_of(i))).collect();
         let all_rows: Vec<usize> = (0..ds.len()).collect();
         for (name, model) in &models {
-            let report = |rows: &[usize]| bias_report(model, &ds.features, &ds.targets, &clouds, rows);
+            let members: Vec<&CloudModel> = model.iter().map(|m| m.as_ref()).collect();
+            let report = |rows: &[usize]| ensemble_bias_report(&members, &ds.features, &ds.targets, &clouds, rows);
             let by_vertex = [1.0f32, 2.0, 3.0].map(|v| {
                 let rows: Vec<usize> = all_rows.iter().copied().filter(|&i| ds.targets[i * 5 + 4] == v).collect();
                 (!rows.is_empty()).then(|| report(&rows))
