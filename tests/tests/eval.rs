@@ -31,6 +31,7 @@ fn small_evaluation_runs_end_to_end() {
         // 1,024 spp, toplit, g = 0.85).
         preview_spp: Some(32_768),
         preview_passes: 8,
+        preview_repeats: 1,
         preview_nodes: None,
         sky: false,
         out: out.clone(),
@@ -97,4 +98,56 @@ fn small_evaluation_runs_end_to_end() {
     let again = eval(&args).unwrap();
     let same = |a: f64, b: f64| (a - b).abs() <= 1e-12 * b.abs();
     assert!(same(again[0].ttuv_pred, k1.ttuv_pred) && same(again[1].bias, k4.bias), "{again:?}");
+}
+
+/// `--preview-repeats 3`: a preview that reaches 5 % (the learned one on scene A
+/// backlit, whose floor is a few per cent) is timed three times, each run from a new
+/// cloud's set-up and stopped at 5 %, and its time is their median; the previews that
+/// do not (the octaves, tens of per cent off) are timed once. The runs' images are the
+/// same (same seed), so each reaches 5 % at the same pass and only the seconds differ.
+#[test]
+fn repeated_preview_runs_report_their_median() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().to_path_buf();
+    let args = EvalArgs {
+        scenes: vec!["A".into()],
+        configs: vec!["backlit".into()],
+        rho: vec![40.0],
+        k: vec![1],
+        size: 64,
+        spp_ref: 512,
+        spp: 8,
+        p: 0.25,
+        auto_p: false,
+        res: 64,
+        field_nodes: 33,
+        model: None,
+        predictor: "cloud".into(),
+        preview: true,
+        preview_spp: Some(8),
+        preview_passes: 16,
+        preview_repeats: 3,
+        preview_nodes: None,
+        sky: false,
+        out: out.clone(),
+        run: RunArgs { threads: None, quiet: true },
+    };
+    eval(&args).unwrap();
+    let csv = std::fs::read_to_string(out.join("preview.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 3, "{csv}");
+    let row = |t: &str| rows.iter().find(|r| r[4] == t).unwrap();
+    let learned = row("learned");
+    let runs: Vec<f64> = learned[11].split(' ').map(|s| s.parse().unwrap()).collect();
+    assert_eq!(runs.len(), 3, "the learned preview reaches 5 % and is timed three times: {csv}");
+    let mut sorted = runs.clone();
+    sorted.sort_by(f64::total_cmp);
+    let secs: f64 = learned[7].parse().unwrap();
+    assert!((secs - sorted[1]).abs() < 1e-3, "its time is the median run's: {csv}");
+    assert!(runs.iter().all(|s| *s > 0.0 && s.is_finite()), "{csv}");
+    for t in ["octaves", "octaves fitted"] {
+        assert!(row(t)[7].is_empty() && row(t)[11].is_empty(), "{t} never reaches 5 %, timed once: {csv}");
+    }
+    let md = std::fs::read_to_string(out.join("preview.md")).unwrap();
+    assert!(md.contains("(median of 3 runs: "), "{md}");
 }

@@ -96,6 +96,12 @@ pub struct EvalArgs {
     /// approximation with its defaults and fitted to the reference).
     #[arg(long, default_value_t = 32)]
     pub preview_passes: u32,
+    /// Times each instant preview that reaches 5 % this many times, each run from a
+    /// new cloud's set-up (a new sun field and model binding) and stopped at 5 %; the
+    /// cell reports the median and the range (the first pass's time varies from run to
+    /// run on a shared machine).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub preview_repeats: u32,
     /// Nodes per axis, at most, of the learned preview's lattice of multiple
     /// scattering (default: the scene files', one node per voxel up to 128).
     #[arg(long, value_parser = clap::value_parser!(u32).range(2..=1024))]
@@ -458,6 +464,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 bound: &bind_preview,
                 field_nodes: args.field_nodes,
                 spp: args.preview_passes.max(2),
+                repeats: args.preview_repeats.max(1),
                 control: &control,
                 cache: &cache,
                 key: &format!("{key}_{model_id}"),

@@ -36,8 +36,13 @@ pub struct PreviewCell {
     pub octaves: Option<[f32; 4]>,
     /// Seconds to build what the technique needs before its first pass.
     pub setup_secs: f64,
-    /// Set-up plus render seconds until the image is within 5 % relative RMSE.
+    /// Set-up plus render seconds until the image is within 5 % relative RMSE (the
+    /// median of `preview_secs_runs` when there are several).
     pub preview_secs: Option<f64>,
+    /// With `--preview-repeats N` > 1 and a first run that reached 5 %: every run's
+    /// time to 5 % (None: not within the passes), the first run's first.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub preview_secs_runs: Vec<Option<f64>>,
     /// Relative RMSE after the first pass.
     pub rmse_first_pass: f64,
     /// Relative RMSE with the image's own noise subtracted: its bias part.
@@ -74,6 +79,8 @@ pub struct PreviewJob<'a> {
     pub field_nodes: u32,
     /// Passes of each preview render.
     pub spp: u32,
+    /// Timed runs of each preview that reaches 5 % (`--preview-repeats`).
+    pub repeats: u32,
     pub control: &'a RenderControl,
     pub cache: &'a Path,
     /// The configuration's cache key and labels.
@@ -103,12 +110,12 @@ impl PreviewJob<'_> {
         let field_secs = t.elapsed().as_secs_f64();
         // The learned preview: the model bound to the cloud and sun, its lattice for
         // this camera.
-        let learned = || -> Result<(MultipleScattering, f64)> {
-            let (bound, bound_secs) = (self.bound)(&field);
+        let learned = |field: &Arc<SunTransmittance>| -> Result<(MultipleScattering, f64)> {
+            let (bound, bound_secs) = (self.bound)(field);
             let t = Instant::now();
             let lattice = Preview::learned_lattice(
                 self.scene,
-                &field,
+                field,
                 bound,
                 self.scene.camera.position(),
                 self.file.render.preview_nodes,
@@ -126,10 +133,10 @@ impl PreviewJob<'_> {
         };
         Ok(vec![
             self.cell(TECHNIQUES[0], None, field_secs, &field, learned)?,
-            self.cell(TECHNIQUES[1], Some(default_octaves()), field_secs, &field, || {
+            self.cell(TECHNIQUES[1], Some(default_octaves()), field_secs, &field, |_| {
                 Ok((MultipleScattering::DEFAULT_OCTAVES, 0.0))
             })?,
-            self.cell(TECHNIQUES[2], Some(fitted), field_secs, &field, || Ok((octaves(fitted), 0.0)))?,
+            self.cell(TECHNIQUES[2], Some(fitted), field_secs, &field, |_| Ok((octaves(fitted), 0.0)))?,
         ])
     }
 
@@ -143,7 +150,9 @@ impl PreviewJob<'_> {
         } else {
             String::new()
         };
-        let tag = format!("{}_preview_{CACHE_FORM}_{}{lattice}_spp{}", self.key, technique.replace(' ', "_"), self.spp);
+        let runs = if self.repeats > 1 { format!("_runs{}", self.repeats) } else { String::new() };
+        let tag =
+            format!("{}_preview_{CACHE_FORM}_{}{lattice}_spp{}{runs}", self.key, technique.replace(' ', "_"), self.spp);
         (self.cache.join(format!("{tag}.json")), self.cache.join(format!("{tag}.npy")))
     }
 
@@ -163,12 +172,12 @@ impl PreviewJob<'_> {
         params: Option<[f32; 4]>,
         field_secs: f64,
         field: &Arc<SunTransmittance>,
-        multiple: impl FnOnce() -> Result<(MultipleScattering, f64)>,
+        multiple: impl Fn(&Arc<SunTransmittance>) -> Result<(MultipleScattering, f64)>,
     ) -> Result<(PreviewCell, Vec<[f32; 3]>)> {
         if let Some(cached) = self.cached(technique) {
             return Ok(cached);
         }
-        let (ms, ms_secs) = multiple()?;
+        let (ms, ms_secs) = multiple(field)?;
         let ms2 = ms.clone();
         let setup_secs = field_secs + ms_secs;
         let t = render_tracked(
@@ -201,6 +210,17 @@ impl PreviewJob<'_> {
             .zip(&second.mean)
             .map(|(a, b)| std::array::from_fn(|c| 0.25 * (a[c] - b[c]) * (a[c] - b[c])))
             .collect();
+        let first_secs = t.preview_secs.map(|s| s + setup_secs);
+        let runs = match first_secs {
+            Some(_) if self.repeats > 1 => {
+                let mut runs = vec![first_secs];
+                for _ in 1..self.repeats {
+                    runs.push(self.timed_run(&multiple)?);
+                }
+                runs
+            }
+            _ => vec![],
+        };
         let (label, config, rho) = self.labels;
         let cell = PreviewCell {
             scene: label.into(),
@@ -210,7 +230,8 @@ impl PreviewJob<'_> {
             technique: technique.into(),
             octaves: params,
             setup_secs,
-            preview_secs: t.preview_secs.map(|s| s + setup_secs),
+            preview_secs: if runs.is_empty() { first_secs } else { median_secs(&runs) },
+            preview_secs_runs: runs,
             rmse_first_pass: t.curve.first().map_or(f64::INFINITY, |p| p.1),
             rmse_floor: relative_rmse_less(&average, self.reference, self.mask, Some(&var)),
             spp: self.spp,
@@ -221,6 +242,31 @@ impl PreviewJob<'_> {
         write_bytes_atomically(&npy, &image_npy(std::slice::from_ref(&full.mean), w, h))?;
         write_json(&json, &cell)?;
         Ok((cell, full.mean))
+    }
+
+    /// One more timed run of a preview to 5 %, as for a new cloud: the sun field and
+    /// `multiple`'s source built again, the render stopped at 5 %. None when it does
+    /// not get there within the cell's passes.
+    fn timed_run(
+        &self,
+        multiple: &impl Fn(&Arc<SunTransmittance>) -> Result<(MultipleScattering, f64)>,
+    ) -> Result<Option<f64>> {
+        let sun = self.scene.sun.as_ref().expect("evaluation scenes have a sun");
+        let t = Instant::now();
+        let field = Arc::new(SunTransmittance::build(&self.scene.medium, sun, SunTransmittance::DEFAULT_MAX_NODES));
+        let field_secs = t.elapsed().as_secs_f64();
+        let (ms, ms_secs) = multiple(&field)?;
+        let integrator = self.integrator(&field, ms)?;
+        let run = render_tracked(
+            self.scene.clone(),
+            integrator,
+            self.spp,
+            self.control,
+            Some((self.reference, self.mask)),
+            true,
+            |_| {},
+        )?;
+        Ok(run.preview_secs.map(|s| s + field_secs + ms_secs))
     }
 
     /// The preview integrator for the field and a source of the higher orders.
@@ -272,6 +318,29 @@ impl PreviewJob<'_> {
         let [a, b, c] = best.map(|v| v.clamp(0.01, 1.0) as f32);
         Ok([n, a, b, c])
     }
+}
+
+/// " (median of N runs: lo - hi s)" for several runs, the runs that never got
+/// there counted; empty for one run.
+fn runs_range(runs: &[Option<f64>]) -> String {
+    if runs.len() < 2 {
+        return String::new();
+    }
+    let reached: Vec<f64> = runs.iter().flatten().copied().collect();
+    let lo = reached.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = reached.iter().copied().fold(0.0f64, f64::max);
+    let never = runs.len() - reached.len();
+    let never = if never > 0 { format!(", {never} never") } else { String::new() };
+    format!(" (median of {} runs: {lo:.2} - {hi:.2} s{never})", runs.len())
+}
+
+/// The median of runs' times to 5 % (a run that never got there counts as the
+/// slowest; for an even count the lower of the two middle runs); None when the
+/// median run never got there.
+fn median_secs(runs: &[Option<f64>]) -> Option<f64> {
+    let mut sorted: Vec<f64> = runs.iter().map(|r| r.unwrap_or(f64::INFINITY)).collect();
+    sorted.sort_by(f64::total_cmp);
+    sorted.get(sorted.len().saturating_sub(1) / 2).copied().filter(|s| s.is_finite())
 }
 
 /// The octave approximation of (N, a, b, c).
@@ -341,6 +410,20 @@ mod tests {
         for (got, want) in best.iter().zip([0.3, 0.7, 0.15]) {
             assert!((got - want).abs() < 1e-3, "{best:?}");
         }
+    }
+
+    /// The repeated runs' median counts a run that never reached 5 % as the slowest,
+    /// takes the lower middle run of an even count, and the table states the range of
+    /// the runs that got there.
+    #[test]
+    fn repeated_runs_report_their_median_and_range() {
+        assert_eq!(median_secs(&[Some(0.9), Some(0.7), Some(0.8)]), Some(0.8));
+        assert_eq!(median_secs(&[Some(0.9), Some(0.7), Some(0.8), Some(0.6)]), Some(0.7));
+        assert_eq!(median_secs(&[None, Some(0.7), Some(0.8)]), Some(0.8));
+        assert_eq!(median_secs(&[None, None, Some(0.8)]), None);
+        assert_eq!(median_secs(&[]), None);
+        assert_eq!(runs_range(&[Some(0.7)]), "");
+        assert_eq!(runs_range(&[Some(0.75), Some(0.7), None]), " (median of 3 runs: 0.70 - 0.75 s, 1 never)");
     }
 }
 
@@ -413,6 +496,13 @@ pub fn write_reports(
         .col("rmse_first_pass", |c| format!("{:.5}", c.rmse_first_pass))
         .col("rmse_floor", |c| format!("{:.5}", c.rmse_floor))
         .col("spp", |c| c.spp.to_string())
+        .col("preview_secs_runs", |c| {
+            c.preview_secs_runs
+                .iter()
+                .map(|r| r.map_or("never".into(), |s| format!("{s:.3}")))
+                .collect::<Vec<_>>()
+                .join(" ")
+        })
         .render(cells);
     write_bytes_atomically(&out.join("preview.csv"), csv.as_bytes())?;
     let secs = |v: Option<f64>| v.map_or("never".to_string(), |s| format!("{s:.2} s"));
@@ -453,7 +543,12 @@ pub fn write_reports(
                     .filter(|_| t == "octaves fitted")
                     .map(|p| format!(", a {:.2} b {:.2} c {:.2}", p[1], p[2], p[3]))
                     .unwrap_or_default();
-                format!("{} / {:.1} %{fit}", secs(c.preview_secs), 100.0 * c.rmse_floor)
+                format!(
+                    "{}{} / {:.1} %{fit}",
+                    secs(c.preview_secs),
+                    runs_range(&c.preview_secs_runs),
+                    100.0 * c.rmse_floor
+                )
             })
         };
         let ratio = match (pt, here("learned").and_then(|c| c.preview_secs)) {
