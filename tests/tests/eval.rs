@@ -145,6 +145,9 @@ fn repeated_preview_runs_report_their_median() {
     let secs: f64 = learned[7].parse().unwrap();
     assert!((secs - sorted[1]).abs() < 1e-3, "its time is the median run's: {csv}");
     assert!(runs.iter().all(|s| *s > 0.0 && s.is_finite()), "{csv}");
+    // Each run was timed on its own (set up and rendered again): their microseconds
+    // differ.
+    assert!(runs[0] != runs[1] && runs[1] != runs[2], "three separate runs: {csv}");
     for t in ["octaves", "octaves fitted"] {
         assert!(row(t)[7].is_empty() && row(t)[11].is_empty(), "{t} never reaches 5 %, timed once: {csv}");
     }

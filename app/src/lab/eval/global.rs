@@ -96,10 +96,12 @@ pub struct EvalArgs {
     /// approximation with its defaults and fitted to the reference).
     #[arg(long, default_value_t = 32)]
     pub preview_passes: u32,
-    /// Times each instant preview that reaches 5 % this many times, each run from a
-    /// new cloud's set-up (a new sun field and model binding) and stopped at 5 %; the
-    /// cell reports the median and the range (the first pass's time varies from run to
-    /// run on a shared machine).
+    /// Times each instant preview that reaches 5 % this many times, each run stopped
+    /// at 5 % and set up anew: a new sun field, and for the cloud-aware model a new
+    /// binding with its density pyramid built again (the global model's binding is
+    /// built once per configuration and its seconds counted in every run); the cell
+    /// reports the median and the range (the first pass's time varies from run to run
+    /// on a shared machine).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
     pub preview_repeats: u32,
     /// Nodes per axis, at most, of the learned preview's lattice of multiple

@@ -37,7 +37,8 @@ pub struct PreviewCell {
     /// Seconds to build what the technique needs before its first pass.
     pub setup_secs: f64,
     /// Set-up plus render seconds until the image is within 5 % relative RMSE (the
-    /// median of `preview_secs_runs` when there are several).
+    /// median of `preview_secs_runs` when there are several; `setup_secs` and `curve`
+    /// are the first run's).
     pub preview_secs: Option<f64>,
     /// With `--preview-repeats N` > 1 and a first run that reached 5 %: every run's
     /// time to 5 % (None: not within the passes), the first run's first.
@@ -244,9 +245,10 @@ impl PreviewJob<'_> {
         Ok((cell, full.mean))
     }
 
-    /// One more timed run of a preview to 5 %, as for a new cloud: the sun field and
-    /// `multiple`'s source built again, the render stopped at 5 %. None when it does
-    /// not get there within the cell's passes.
+    /// One more timed run of a preview to 5 %: the sun field and `multiple`'s source
+    /// built again (for the cloud-aware model a new binding, as for a new cloud), the
+    /// render stopped at 5 %. None when it does not get there within the cell's
+    /// passes.
     fn timed_run(
         &self,
         multiple: &impl Fn(&Arc<SunTransmittance>) -> Result<(MultipleScattering, f64)>,
@@ -499,7 +501,7 @@ pub fn write_reports(
         .col("preview_secs_runs", |c| {
             c.preview_secs_runs
                 .iter()
-                .map(|r| r.map_or("never".into(), |s| format!("{s:.3}")))
+                .map(|r| r.map_or("never".into(), |s| format!("{s:.6}")))
                 .collect::<Vec<_>>()
                 .join(" ")
         })
