@@ -7,11 +7,9 @@
 use app::cli::common::RunArgs;
 use app::lab::eval::global::{EvalArgs, eval};
 
-#[test]
-fn small_evaluation_runs_end_to_end() {
-    let tmp = tempfile::tempdir().unwrap();
-    let out = tmp.path().to_path_buf();
-    let args = EvalArgs {
+/// The study of `small_evaluation_runs_end_to_end`, written to `out`.
+fn small_study(out: std::path::PathBuf) -> EvalArgs {
+    EvalArgs {
         scenes: vec!["A".into()],
         configs: vec!["toplit".into()],
         rho: vec![20.0],
@@ -34,9 +32,16 @@ fn small_evaluation_runs_end_to_end() {
         preview_repeats: 1,
         preview_nodes: None,
         sky: false,
-        out: out.clone(),
+        out,
         run: RunArgs { threads: None, quiet: true },
-    };
+    }
+}
+
+#[test]
+fn small_evaluation_runs_end_to_end() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().to_path_buf();
+    let args = small_study(out.clone());
     let r = eval(&args).unwrap();
     assert_eq!(r.len(), 2);
     let (k1, k4) = (&r[0], &r[1]);
@@ -110,27 +115,17 @@ fn repeated_preview_runs_report_their_median() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().to_path_buf();
     let args = EvalArgs {
-        scenes: vec!["A".into()],
         configs: vec!["backlit".into()],
         rho: vec![40.0],
         k: vec![1],
         size: 64,
         spp_ref: 512,
         spp: 8,
-        p: 0.25,
-        auto_p: false,
-        res: 64,
-        field_nodes: 33,
-        model: None,
         predictor: "cloud".into(),
-        preview: true,
         preview_spp: Some(8),
         preview_passes: 16,
         preview_repeats: 3,
-        preview_nodes: None,
-        sky: false,
-        out: out.clone(),
-        run: RunArgs { threads: None, quiet: true },
+        ..small_study(out.clone())
     };
     eval(&args).unwrap();
     let csv = std::fs::read_to_string(out.join("preview.csv")).unwrap();

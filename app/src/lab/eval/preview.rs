@@ -105,10 +105,7 @@ impl PreviewJob<'_> {
         if let Some(cells) = cached {
             return Ok(cells);
         }
-        let sun = self.scene.sun.as_ref().expect("evaluation scenes have a sun");
-        let t = Instant::now();
-        let field = Arc::new(SunTransmittance::build(&self.scene.medium, sun, SunTransmittance::DEFAULT_MAX_NODES));
-        let field_secs = t.elapsed().as_secs_f64();
+        let (field, field_secs) = self.sun_field();
         // The learned preview: the model bound to the cloud and sun, its lattice for
         // this camera.
         let learned = |field: &Arc<SunTransmittance>| -> Result<(MultipleScattering, f64)> {
@@ -245,6 +242,14 @@ impl PreviewJob<'_> {
         Ok((cell, full.mean))
     }
 
+    /// The preview's sun field for the scene's cloud and sun, and the seconds it took.
+    fn sun_field(&self) -> (Arc<SunTransmittance>, f64) {
+        let sun = self.scene.sun.as_ref().expect("evaluation scenes have a sun");
+        let t = Instant::now();
+        let field = Arc::new(SunTransmittance::build(&self.scene.medium, sun, SunTransmittance::DEFAULT_MAX_NODES));
+        (field, t.elapsed().as_secs_f64())
+    }
+
     /// One more timed run of a preview to 5 %: the sun field and `multiple`'s source
     /// built again (for the cloud-aware model a new binding, as for a new cloud), the
     /// render stopped at 5 %. None when it does not get there within the cell's
@@ -253,10 +258,7 @@ impl PreviewJob<'_> {
         &self,
         multiple: &impl Fn(&Arc<SunTransmittance>) -> Result<(MultipleScattering, f64)>,
     ) -> Result<Option<f64>> {
-        let sun = self.scene.sun.as_ref().expect("evaluation scenes have a sun");
-        let t = Instant::now();
-        let field = Arc::new(SunTransmittance::build(&self.scene.medium, sun, SunTransmittance::DEFAULT_MAX_NODES));
-        let field_secs = t.elapsed().as_secs_f64();
+        let (field, field_secs) = self.sun_field();
         let (ms, ms_secs) = multiple(&field)?;
         let integrator = self.integrator(&field, ms)?;
         let run = render_tracked(
