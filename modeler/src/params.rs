@@ -106,7 +106,7 @@ impl CloudParams {
     /// clouds, wispy and homogeneous ones all occur. The same seed gives the same
     /// parameters on any machine.
     pub fn random(seed: u64) -> CloudParams {
-        let mut rng = engine::Rng::new(seed, 0x636c_6f75_64, 0); // "cloud"
+        let mut rng = engine::Rng::new(seed, 0x63_6c6f_7564, 0); // "cloud"
         let mut u = move || rng.uniform();
         let lin = |lo: f32, hi: f32, u: f32| lo + (hi - lo) * u;
         let log = |lo: f32, hi: f32, u: f32| (lo.ln() + (hi.ln() - lo.ln()) * u).exp();
