@@ -284,6 +284,37 @@ impl Preview {
         self.trace_with_offset(scene, o, d, rng.uniform())
     }
 
+    /// The octaves' lobes beyond single scattering for a ray leaving toward `wo`:
+    /// (b^i p_HG(c^i g), a^i) for i = 1 .. N - 1 in the first N - 1 entries, and
+    /// N - 1 (0 without octaves). Computed once per ray: the angle is the ray's.
+    fn octave_lobes(&self, phase: &PhaseFunction, wo: Vec3, to_sun: Vec3) -> ([(f32, f32); 8], usize) {
+        let mut lobes = [(0.0f32, 0.0f32); 8];
+        let MultipleScattering::Octaves { octaves, a, b, c } = self.multiple else {
+            return (lobes, 0);
+        };
+        let g = phase.mean_cosine();
+        let n = octaves as usize - 1;
+        for (i, lobe) in lobes.iter_mut().enumerate().take(n) {
+            let i = i as i32 + 1;
+            let p = PhaseFunction::HenyeyGreenstein { g: (c.powi(i) * g).clamp(-0.999, 0.999) }.eval(wo, to_sun);
+            *lobe = (b.powi(i) * p, a.powi(i));
+        }
+        (lobes, n)
+    }
+
+    /// The higher orders' radiance per unit of scattered light at a march step at `x`
+    /// with camera transmittance `tr` and the sun's optical depth `tau_sun`: the
+    /// lattice's, or the octaves' `lobes` (from [`Preview::octave_lobes`]).
+    #[inline]
+    fn multiple_at(&self, x: Vec3, tr: f32, tau_sun: f32, lobes: &[(f32, f32)]) -> f32 {
+        match &self.multiple {
+            MultipleScattering::Lattice(l) => l.lookup(x, tr),
+            // Octave i sees the sun through a^i of the optical depth.
+            MultipleScattering::Octaves { .. } => lobes.iter().map(|&(amp, exp)| amp * (-tau_sun * exp).exp()).sum(),
+            MultipleScattering::None => 0.0,
+        }
+    }
+
     /// [`Preview::trace`] with the march's offset within its steps given, in [0, 1).
     pub fn trace_with_offset(&self, scene: &Scene, o: Vec3, d: Vec3, offset: f32) -> PathSample {
         let medium = &scene.medium;
@@ -296,22 +327,7 @@ impl Preview {
         let to_sun = self.sun.to_sun();
         let phase = medium.phase();
         let p_single = phase.eval(wo, to_sun);
-        // The octaves' lobes and exponents, once per ray (the angle is the ray's).
-        let mut lobes = [(0.0f32, 0.0f32); 8];
-        let octaves = match self.multiple {
-            MultipleScattering::Octaves { octaves, a, b, c } => {
-                let g = phase.mean_cosine();
-                let n = octaves as usize;
-                for (i, lobe) in lobes.iter_mut().enumerate().take(n - 1) {
-                    let i = i as i32 + 1;
-                    let p =
-                        PhaseFunction::HenyeyGreenstein { g: (c.powi(i) * g).clamp(-0.999, 0.999) }.eval(wo, to_sun);
-                    *lobe = (b.powi(i) * p, a.powi(i));
-                }
-                n - 1
-            }
-            _ => 0,
-        };
+        let (lobes, octaves) = self.octave_lobes(&phase, wo, to_sun);
         let albedo = medium.albedo();
         let (mut tr, mut single, mut multiple) = (1.0f32, 0.0f32, 0.0f32);
         // Steps are taken in batches: the positions of up to MARCH_BATCH steps, then
@@ -366,14 +382,7 @@ impl Preview {
                     let absorbed = 1.0 - (-sigma_t * len).exp();
                     let w = tr * absorbed * albedo;
                     single += w * p_single * (-tau_sun).exp();
-                    multiple += w * match &self.multiple {
-                        MultipleScattering::Lattice(l) => l.lookup(x, tr),
-                        // Octave i sees the sun through a^i of the optical depth.
-                        MultipleScattering::Octaves { .. } => {
-                            lobes[..octaves].iter().map(|&(amp, exp)| amp * (-tau_sun * exp).exp()).sum::<f32>()
-                        }
-                        MultipleScattering::None => 0.0,
-                    };
+                    multiple += w * self.multiple_at(x, tr, tau_sun, &lobes[..octaves]);
                     tr *= 1.0 - absorbed;
                     if tr < MIN_TRANSMITTANCE {
                         break 'march;
@@ -403,15 +412,7 @@ mod tests {
         let to_sun = p.sun.to_sun();
         let phase = medium.phase();
         let p_single = phase.eval(-d, to_sun);
-        let lobes: Vec<(f32, f32)> = match p.multiple {
-            MultipleScattering::Octaves { octaves, a, b, c } => (1..octaves as i32)
-                .map(|i| {
-                    let g = (c.powi(i) * phase.mean_cosine()).clamp(-0.999, 0.999);
-                    (b.powi(i) * PhaseFunction::HenyeyGreenstein { g }.eval(-d, to_sun), a.powi(i))
-                })
-                .collect(),
-            _ => vec![],
-        };
+        let (lobes, octaves) = p.octave_lobes(&phase, -d, to_sun);
         let (mut tr, mut single, mut multiple) = (1.0f32, 0.0f32, 0.0f32);
         for seg in medium.majorant().segments(o, d, 0.0, f32::INFINITY) {
             let sigma_maj = medium.sigma_maj(&seg);
@@ -432,13 +433,7 @@ mod tests {
                 let w = tr * absorbed * medium.albedo();
                 let tau_sun = p.sun.optical_depth(x);
                 single += w * p_single * (-tau_sun).exp();
-                multiple += w * match &p.multiple {
-                    MultipleScattering::Lattice(l) => l.lookup(x, tr),
-                    MultipleScattering::Octaves { .. } => {
-                        lobes.iter().map(|&(amp, exp)| amp * (-tau_sun * exp).exp()).sum::<f32>()
-                    }
-                    MultipleScattering::None => 0.0,
-                };
+                multiple += w * p.multiple_at(x, tr, tau_sun, &lobes[..octaves]);
                 tr *= 1.0 - absorbed;
                 if tr < MIN_TRANSMITTANCE {
                     return (single, multiple, tr);

@@ -402,8 +402,11 @@ fn resample_axis(
         // sums, output by output, wait on every addition in turn.
         let w = &taps[0].1;
         let (row_out, len) = (out_dims[0], dims[0] as i64);
-        // Output o reads input lo0 + step o + k, held at padded[step o + k].
-        let plen = step * (row_out - 1) + w.len();
+        // Output o reads input lo0 + step o + k, held at padded[step o + k]; the line
+        // is padded to whole blocks of eight outputs, the last block's spare ones
+        // computed and not stored.
+        let blocks = row_out.div_ceil(8);
+        let plen = step * (8 * blocks - 1) + w.len();
         let (i0, i1) = (lo0.max(0), (lo0 + plen as i64).min(len));
         out.par_chunks_mut(slice_len).enumerate().for_each(|(z, slice)| {
             // The positions outside the input stay 0 for every line.
@@ -414,23 +417,15 @@ fn resample_axis(
                 if i0 < i1 {
                     padded[(i0 - lo0) as usize..(i1 - lo0) as usize].copy_from_slice(&src[i0 as usize..i1 as usize]);
                 }
-                let mut o = 0;
-                while o + 8 <= row_out {
+                for (b, block) in dst.chunks_mut(8).enumerate() {
+                    let o = 8 * b;
                     let mut acc = [0.0f32; 8];
                     for (k, wk) in w.iter().enumerate() {
                         for (j, a) in acc.iter_mut().enumerate() {
                             *a += wk * padded[step * (o + j) + k];
                         }
                     }
-                    dst[o..o + 8].copy_from_slice(&acc);
-                    o += 8;
-                }
-                for (j, d) in dst.iter_mut().enumerate().skip(o) {
-                    let mut v = 0.0f32;
-                    for (k, wk) in w.iter().enumerate() {
-                        v += wk * padded[step * j + k];
-                    }
-                    *d = v;
+                    block.copy_from_slice(&acc[..block.len()]);
                 }
             }
         });
