@@ -11,6 +11,15 @@
 //! [`Medium::sample_t_maj`] offers the plain loop (every tentative collision against
 //! the majorant) to callers that decide absorb, scatter or null themselves.
 //!
+//! The free-flight and ratio trackers read, at each tentative collision, one corner of
+//! the trilinear stencil drawn with probability its weight
+//! ([`Medium::sigma_t_estimate`]): the estimate's expectation is sigma_t, and both
+//! trackers are linear in it (an acceptance probability, a factor of the running
+//! product), so they stay unbiased; a free flight's distribution is exactly that of
+//! the eight-voxel lookup, and a shadow ray's variance grows only where a cell's
+//! voxels differ a lot. One voxel's read in place of eight is what a big grid's
+//! lookups, which miss the caches, cost least with (docs/benchmarks.md).
+//!
 //! Parameters ([`Medium::with_majorant_cells`]): `rho` the density scale, per world
 //! unit, finite and >= 0 (sigma_t = rho d); `albedo` in [0, 1] (sigma_s = albedo
 //! sigma_t); `phase` ([`crate::phase`]); `cell_voxels` the majorant cell edge in
@@ -293,6 +302,11 @@ pub struct Medium {
     /// The largest extinction (per world unit): [`MAX_TAU_PER_VOXEL`] over the
     /// smallest voxel edge.
     sigma_cap: f32,
+    /// The trackers read one trilinear corner drawn by its weight
+    /// ([`Medium::sigma_t_estimate`]): true unless turned off or the cap could bind
+    /// (rho times the grid's largest value above it), where sigma_t is not linear in
+    /// the voxels' values.
+    one_voxel: bool,
     albedo: f32,
     phase: PhaseFunction,
 }
@@ -321,7 +335,8 @@ impl Medium {
         }
         let majorant = MajorantGrid::new(&grid, cell_voxels);
         let sigma_cap = MAX_TAU_PER_VOXEL / grid.voxel_size().min_element();
-        Ok(Medium { grid, majorant, rho, albedo, phase, sigma_cap })
+        let one_voxel = rho * grid.max_value() <= sigma_cap;
+        Ok(Medium { grid, majorant, rho, albedo, phase, sigma_cap, one_voxel })
     }
 
     /// The same medium tracked without a control density (every cell's minimum set to
@@ -329,6 +344,14 @@ impl Medium {
     /// --compare-control` measures against.
     pub fn without_control(mut self) -> Self {
         self.majorant.min_density.fill(0.0);
+        self
+    }
+
+    /// The same medium whose trackers read sigma_t itself (eight voxels, trilinear) at
+    /// every tentative collision: the same estimates with other variance and cost, the
+    /// baseline `nimbus bench render --compare-lookups` measures against.
+    pub fn with_trilinear_lookups(mut self) -> Self {
+        self.one_voxel = false;
         self
     }
 
@@ -356,6 +379,20 @@ impl Medium {
     #[inline]
     pub fn sigma_t(&self, p: Vec3) -> f32 {
         (self.rho * self.grid.lookup(p)).min(self.sigma_cap)
+    }
+
+    /// An unbiased estimate of sigma_t(p) from one voxel: rho times the trilinear corner
+    /// drawn by its weight ([`DensityGrid::lookup_stochastic`]). Every corner lies in
+    /// the footprint of p's majorant cell, so the estimate lies between the cell's
+    /// control density and its majorant. Where the cap could bind, sigma_t(p) itself.
+    #[inline]
+    pub fn sigma_t_estimate(&self, p: Vec3, rng: &mut Rng) -> f32 {
+        if self.one_voxel {
+            let bits = ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+            self.rho * self.grid.lookup_stochastic(p, bits)
+        } else {
+            self.sigma_t(p)
+        }
     }
 
     /// The largest extinction the medium has: [`MAX_TAU_PER_VOXEL`] per voxel edge.
@@ -437,7 +474,7 @@ impl Medium {
             if sigma_r > 0.0 {
                 let mut hit = None;
                 tentative_collisions(seg.t_min, end, sigma_r, rng, |t, rng| {
-                    let sigma_t = self.sigma_t(o + d * t);
+                    let sigma_t = self.sigma_t_estimate(o + d * t, rng);
                     debug_assert!(
                         sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6,
                         "majorant {sigma_maj} < sigma_t {sigma_t}"
@@ -506,7 +543,7 @@ impl Medium {
                 continue;
             }
             let alive = tentative_collisions(seg.t_min, seg.t_max, sigma_r, rng, |t, rng| {
-                let sigma_t = self.sigma_t(o + d * t);
+                let sigma_t = self.sigma_t_estimate(o + d * t, rng);
                 debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
                 tr *= 1.0 - (sigma_t - sigma_c) / sigma_r;
                 if tr < RATIO_TRACKING_RR_THRESHOLD {

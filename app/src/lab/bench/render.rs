@@ -43,6 +43,11 @@ pub struct BenchRenderArgs {
     /// (plain delta and ratio tracking: the same estimate, other variance and cost).
     #[arg(long)]
     pub compare_control: bool,
+    /// Also render every configuration with trilinear lookups in the trackers (eight
+    /// voxels per tentative collision instead of one corner drawn by its weight: the
+    /// same estimate, other variance and cost).
+    #[arg(long)]
+    pub compare_lookups: bool,
     /// Render every configuration this many times, alternating, and report medians.
     #[arg(long, default_value_t = 1)]
     pub rounds: u32,
@@ -237,6 +242,15 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                     let mut info = info.clone();
                     info["control"] = false.into();
                     configs.push(Config { label: format!("{label} no control"), scene, info, runs: Vec::new() });
+                }
+                if args.compare_lookups {
+                    let scene = Arc::new(engine::Scene {
+                        medium: medium.clone().with_trilinear_lookups(),
+                        ..base_scene.clone()
+                    });
+                    let mut info = info.clone();
+                    info["lookups"] = "trilinear".into();
+                    configs.push(Config { label: format!("{label} trilinear"), scene, info, runs: Vec::new() });
                 }
                 let scene = Arc::new(engine::Scene { medium, ..base_scene.clone() });
                 configs.push(Config { label, scene, info, runs: Vec::new() });
