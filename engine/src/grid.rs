@@ -510,16 +510,23 @@ impl DensityGrid {
         (p - self.origin) * self.inv_voxel_size - 0.5
     }
 
+    /// The lower corner of the trilinear stencil at world position `p` and the
+    /// fractional offsets from it; None for far-away points (and NaN), which are
+    /// outside anyway, so that the i32 casts stay exact.
+    #[inline(always)]
+    fn stencil(&self, p: Vec3) -> Option<(i32, i32, i32, Vec3)> {
+        let u = self.world_to_index(p);
+        if !(u.abs().max_element() < 1.0e9) {
+            return None;
+        }
+        let (x, y, z) = (floor_i32(u.x), floor_i32(u.y), floor_i32(u.z));
+        Some((x, y, z, u - Vec3::new(x as f32, y as f32, z as f32)))
+    }
+
     /// Trilinearly interpolated density at world position `p`.
     #[inline]
     pub fn lookup(&self, p: Vec3) -> f32 {
-        let u = self.world_to_index(p);
-        // Far-away points (and NaN) are outside anyway; this keeps the i32 casts exact.
-        if !(u.abs().max_element() < 1.0e9) {
-            return 0.0;
-        }
-        let (x, y, z) = (floor_i32(u.x), floor_i32(u.y), floor_i32(u.z));
-        let f = u - Vec3::new(x as f32, y as f32, z as f32);
+        let Some((x, y, z, f)) = self.stencil(p) else { return 0.0 };
         let (nx, ny, nz) = (self.dims.x as i32, self.dims.y as i32, self.dims.z as i32);
         let (c000, c100, c010, c110, c001, c101, c011, c111);
         let inside = x >= 0 && y >= 0 && z >= 0 && x + 1 < nx && y + 1 < ny && z + 1 < nz;
@@ -617,12 +624,7 @@ impl DensityGrid {
     /// the grid read 0, as in `lookup`.
     #[inline]
     pub fn lookup_stochastic(&self, p: Vec3, bits: u64) -> f32 {
-        let u = self.world_to_index(p);
-        if !(u.abs().max_element() < 1.0e9) {
-            return 0.0;
-        }
-        let (x, y, z) = (floor_i32(u.x), floor_i32(u.y), floor_i32(u.z));
-        let f = u - Vec3::new(x as f32, y as f32, z as f32);
+        let Some((x, y, z, f)) = self.stencil(p) else { return 0.0 };
         const SCALE: f32 = 1.0 / (1u32 << 21) as f32;
         let upper = |r: u64, f: f32| ((r & 0x1F_FFFF) as f32 * SCALE < f) as i32;
         self.voxel_or_zero(x + upper(bits, f.x), y + upper(bits >> 21, f.y), z + upper(bits >> 42, f.z))
@@ -1058,7 +1060,6 @@ mod tests {
     #[test]
     fn stochastic_lookup_draws_corners_by_weight() {
         use crate::stats::{chi2_test, sidak};
-        use glam::IVec3;
         let dims = UVec3::new(13, 11, 10);
         let n = (dims.x * dims.y * dims.z) as usize;
         // Distinct values name the voxel a draw read.
@@ -1085,11 +1086,7 @@ mod tests {
                 let d = UVec3::new(c & 1, (c >> 1) & 1, c >> 2);
                 let w = (0..3).map(|a| if d[a] == 1 { f[a] as f64 } else { 1.0 - f[a] as f64 }).product::<f64>();
                 let q = base.as_ivec3() + d.as_ivec3();
-                let v = if q.cmpge(IVec3::ZERO).all() && q.cmplt(dims.as_ivec3()).all() {
-                    dense.voxel(q.x as u32, q.y as u32, q.z as u32)
-                } else {
-                    0.0
-                };
+                let v = dense.voxel_or_zero(q.x, q.y, q.z);
                 *expected.entry(v.to_bits()).or_default() += w;
             }
             let mut counts: std::collections::BTreeMap<u32, f64> = Default::default();
