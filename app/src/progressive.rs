@@ -71,7 +71,7 @@ pub struct AutoP {
 /// at p = 1 and B = E[H^2], and cost per pass C(p) = c0 + p c1. TTUV is proportional to
 /// V(p) C(p) = (A + B/p)(c0 + p c1) with A = V1 - B, whose minimum is at
 /// p* = sqrt(B c0 / (A c1)), clamped to [0.05, 1] (p = 1 when A <= 0). Two pilots of
-/// `pilot_spp` passes, at p = 1 and p = 0.1 (after one warm-up pass), give V1 and
+/// `pilot_spp` passes, at p = 1 and p = 0.1 (after a warm-up pilot at p = 1), give V1 and
 /// V(0.1) = V1 + 9 B, so B = (V(0.1) - V1) / 9 (this also holds when the high buffer
 /// carries NEE that is not rouletted, as with multiple-scattering models), and the
 /// two pass times give c0 and c1. Variances are pixel means over lit pixels; the
@@ -92,8 +92,11 @@ pub fn auto_p(
         }
         Ok(out)
     };
-    pilot(1.0, 1)?; // warm-up: caches, page faults, thread start
     let spp = pilot_spp.max(2);
+    // Warm-up at p = 1 as long as a pilot: caches, page faults, thread start, and a
+    // predictor's lattice filled where the paths read it, so the pilots time the
+    // steady state the render spends its passes in.
+    pilot(1.0, spp)?;
     let (full, few) = (pilot(1.0, spp)?, pilot(0.1, spp)?);
     // Mean over lit pixels of the per-sample variance (sample variance = variance of
     // the mean times spp).

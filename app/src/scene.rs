@@ -23,7 +23,7 @@
 
 use crate::cloud::Builtin;
 use engine::field::SunTransmittance;
-use engine::integrator::preview::{MultipleScattering, Preview};
+use engine::integrator::preview::{CameraLatticePredictor, MultipleScattering, Preview};
 use engine::{
     Camera, Cancel, DensityGrid, InScatterPredictor, Integrator, Medium, Mode, PhaseFunction, RenderSettings, Scene,
     Sky, Sun,
@@ -289,6 +289,19 @@ pub struct RenderDesc {
     /// Default 96 (each node evaluated when the preview first reads it).
     #[serde(skip_serializing_if = "is_default_preview_nodes")]
     pub preview_nodes: u32,
+    /// Prediction at bounce 1 reads the model's answers from a lattice toward the
+    /// camera of at most this many nodes per axis, filled as the paths read it
+    /// (engine::integrator::preview::CameraLatticePredictor), instead of evaluating
+    /// the model at every predicted vertex; 0 evaluates the model at every one, 2 ..=
+    /// 256 otherwise. Default 128 (one node per voxel of a 128^3 cloud).
+    #[serde(skip_serializing_if = "is_default_prediction_lattice")]
+    pub prediction_lattice: u32,
+    /// Where prediction at k = 1 places its vertex on the camera ray: "guided" (one of
+    /// ratio tracking's tentative collisions drawn by its weight times the sun's
+    /// transmittance there, plus a floor; the default), "weighted" (by its weight
+    /// alone) or "free-flight" (the first real collision, as path tracing).
+    #[serde(skip_serializing_if = "is_guided")]
+    pub first_vertex: String,
     /// The octave approximation: octaves N (terms 0 .. N-1, 1 ..= 9, default 3) and
     /// its factors a (optical depth), b (amplitude), c (mean cosine), each in (0, 1],
     /// default 0.5.
@@ -308,6 +321,14 @@ fn is_auto(s: &str) -> bool {
 
 fn is_learned(s: &str) -> bool {
     s == "learned"
+}
+
+fn is_guided(s: &str) -> bool {
+    s == "guided"
+}
+
+fn is_default_prediction_lattice(n: &u32) -> bool {
+    *n == DEFAULT_PREDICTION_LATTICE
 }
 
 fn is_default_preview_nodes(n: &u32) -> bool {
@@ -330,6 +351,9 @@ fn is_half(v: &f32) -> bool {
 /// frontlit 0.55 s against 1.06 s); 64 nodes lose 1 - 6 points backlit, where the
 /// image is the bright fringe, and 48 lost 2 - 13.
 pub const DEFAULT_PREVIEW_NODES: u32 = 96;
+
+/// Nodes per axis, at most, of prediction's lattice at bounce 1, by default.
+pub const DEFAULT_PREDICTION_LATTICE: u32 = 128;
 
 fn is_default_extension_samples(n: &u32) -> bool {
     *n == engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES
@@ -361,6 +385,8 @@ impl Default for RenderDesc {
             extension_samples: engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
             preview: "learned".into(),
             preview_nodes: DEFAULT_PREVIEW_NODES,
+            prediction_lattice: DEFAULT_PREDICTION_LATTICE,
+            first_vertex: "guided".into(),
             octaves: 3,
             octave_a: 0.5,
             octave_b: 0.5,
@@ -567,6 +593,15 @@ impl SceneFile {
                 self.render.preview
             )));
         }
+        if !["guided", "weighted", "free-flight"].contains(&self.render.first_vertex.as_str()) {
+            return Err(SceneError::Invalid(format!(
+                "render.first_vertex must be \"guided\", \"weighted\" or \"free-flight\", got {:?}",
+                self.render.first_vertex
+            )));
+        }
+        if self.render.prediction_lattice == 1 || self.render.prediction_lattice > 256 {
+            return Err(range_err("render.prediction_lattice", self.render.prediction_lattice, "0 or 2 ..= 256"));
+        }
         if !(2..=128).contains(&self.render.preview_nodes) {
             return Err(range_err("render.preview_nodes", self.render.preview_nodes, "2 ..= 128"));
         }
@@ -711,6 +746,11 @@ impl SceneFile {
             k: self.k,
             max_order: self.max_order,
             mode: if self.render.mode == "predict" { Mode::Predict { p: self.render.p } } else { Mode::Reference },
+            first_vertex: if self.render.first_vertex == "free-flight" {
+                engine::FirstVertex::FreeFlight
+            } else {
+                engine::FirstVertex::Weighted
+            },
         }
     }
 
@@ -782,7 +822,14 @@ impl SceneFile {
             return self.bdpt_prediction(scene, cache);
         }
         match self.bound_model(scene, max_nodes, None, cache, cancel)? {
-            Ok(bound) => Ok(IntegratorSetup { integrator: self.integrator_with(Some(bound))?, warning: None }),
+            Ok(bound) => {
+                let integrator = self.integrator_with(Some(self.prediction_predictor(scene, bound)))?;
+                let integrator = match self.first_vertex_guide(scene, cache, cancel)? {
+                    Some(field) => integrator.with_first_vertex_guide(field),
+                    None => integrator,
+                };
+                Ok(IntegratorSetup { integrator, warning: None })
+            }
             Err(e) => {
                 let mut reference = self.clone();
                 reference.render.mode = "reference".into();
@@ -791,6 +838,48 @@ impl SceneFile {
                     warning: Some(format!("cannot use the model ({e}); rendering by path tracing instead")),
                 })
             }
+        }
+    }
+
+    /// The sun's transmittance that guides prediction's first vertex at k = 1 under
+    /// `render.first_vertex = "guided"` (reused from `cache` for the same cloud, rho
+    /// and sun, as the preview's), else None.
+    pub fn first_vertex_guide(
+        &self,
+        scene: &Scene,
+        cache: &mut PredictorCache,
+        cancel: Cancel,
+    ) -> Result<Option<Arc<SunTransmittance>>, SceneError> {
+        let Some(sun) = scene.sun.as_ref().filter(|_| self.k == 1 && self.render.first_vertex == "guided") else {
+            return Ok(None);
+        };
+        let nodes = SunTransmittance::DEFAULT_MAX_NODES;
+        let key = PredictorKey { model: None, other_lights: false, ..PredictorKey::new(self, scene, nodes) };
+        if let Some((_, f)) = cache.sun.iter().find(|(k, _)| *k == key) {
+            return Ok(Some(f.clone()));
+        }
+        let f =
+            Arc::new(SunTransmittance::build_until(&scene.medium, sun, nodes, cancel).ok_or(SceneError::Cancelled)?);
+        cache.sun.insert(0, (key, f.clone()));
+        cache.sun.truncate(2);
+        Ok(Some(f))
+    }
+
+    /// What prediction mode asks for `bound`'s answers: at k = 1, unless
+    /// `render.prediction_lattice` is 0, a lattice of them toward the camera
+    /// ([`CameraLatticePredictor`]), else the bound model itself.
+    pub fn prediction_predictor(
+        &self,
+        scene: &Scene,
+        bound: Arc<dyn InScatterPredictor>,
+    ) -> Arc<dyn InScatterPredictor> {
+        let nodes = self.render.prediction_lattice;
+        if self.k != 1 || nodes == 0 {
+            return bound;
+        }
+        match CameraLatticePredictor::new(scene, bound.clone(), scene.camera.position(), nodes) {
+            Some(lattice) => Arc::new(lattice),
+            None => bound,
         }
     }
 
@@ -1085,6 +1174,60 @@ mod tests {
         bad.render.predictor = "deep".into();
         let e = bad.validate().unwrap_err().to_string();
         assert!(e.contains("render.predictor") && e.contains("cloud"), "{e}");
+    }
+
+    /// Prediction at k = 1 reads the cloud-aware model from a lattice toward the camera
+    /// (render.prediction_lattice, written back only when not the default); at other k,
+    /// with 0, and for the global model, which answers any light direction, it asks
+    /// the model; a lattice of 1 node or more than 256 is refused. Its vertex is
+    /// guided by the sun's transmittance unless render.first_vertex says otherwise.
+    #[test]
+    fn prediction_at_the_first_vertex_reads_a_lattice() {
+        let text = format!("k = 1\n{MINIMAL}[render]\nmode = \"predict\"\npredictor = \"cloud\"\n");
+        let s = SceneFile::from_toml_str(&text, "t").unwrap();
+        assert_eq!(s.render.prediction_lattice, DEFAULT_PREDICTION_LATTICE);
+        assert!(!s.to_toml().contains("prediction_lattice"));
+        let name = |f: &SceneFile| {
+            let scene = f.build_scene(None).unwrap();
+            f.integrator(&scene, 16).unwrap().integrator.predictor().expect("a predictor").name().to_string()
+        };
+        assert!(name(&s).contains("camera lattice"), "{}", name(&s));
+        let mut k2 = s.clone();
+        k2.k = 2;
+        assert!(!name(&k2).contains("camera lattice"), "{}", name(&k2));
+        let mut off = s.clone();
+        off.render.prediction_lattice = 0;
+        off.validate().unwrap();
+        assert!(off.to_toml().contains("prediction_lattice = 0"));
+        assert!(!name(&off).contains("camera lattice"), "{}", name(&off));
+        let mut global = s.clone();
+        global.render.predictor = "global".into();
+        assert!(!name(&global).contains("camera lattice"), "{}", name(&global));
+        for bad in [1, 257] {
+            let mut f = s.clone();
+            f.render.prediction_lattice = bad;
+            let e = f.validate().unwrap_err().to_string();
+            assert!(e.contains("render.prediction_lattice"), "{e}");
+        }
+        // The first vertex: guided by the sun's transmittance by default, by weight
+        // alone, or by free flight; another word is refused.
+        let setup = |f: &SceneFile| f.integrator(&f.build_scene(None).unwrap(), 16).unwrap().integrator;
+        assert_eq!(s.render.first_vertex, "guided");
+        assert!(!s.to_toml().contains("first_vertex"));
+        assert!(setup(&s).first_vertex_guide().is_some());
+        assert_eq!(setup(&s).settings().first_vertex, engine::FirstVertex::Weighted);
+        assert!(setup(&k2).first_vertex_guide().is_none());
+        let mut weighted = s.clone();
+        weighted.render.first_vertex = "weighted".into();
+        assert!(setup(&weighted).first_vertex_guide().is_none());
+        assert_eq!(setup(&weighted).settings().first_vertex, engine::FirstVertex::Weighted);
+        let mut free = s.clone();
+        free.render.first_vertex = "free-flight".into();
+        assert!(free.to_toml().contains("first_vertex = \"free-flight\""));
+        assert_eq!(setup(&free).settings().first_vertex, engine::FirstVertex::FreeFlight);
+        free.render.first_vertex = "first".into();
+        let e = free.validate().unwrap_err().to_string();
+        assert!(e.contains("render.first_vertex"), "{e}");
     }
 
     /// BDPT prediction loads the shipped point-to-point model without any file, splits

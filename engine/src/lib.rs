@@ -33,7 +33,7 @@ pub use control::{Cancel, RenderControl};
 pub use film::{Buffer, Film};
 pub use grid::{Bounds3, DensityGrid, GridError, SparseBuilder};
 pub use integrator::bdpt::BdptSettings;
-pub use integrator::{Integrator, MisHeuristic, Mode, PathSample, RenderSettings, Technique};
+pub use integrator::{FirstVertex, Integrator, MisHeuristic, Mode, PathSample, RenderSettings, Technique};
 pub use light::{Sky, Sun};
 pub use medium::{FreeFlight, Medium};
 pub use phase::PhaseFunction;

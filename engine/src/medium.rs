@@ -561,6 +561,77 @@ impl Medium {
         tr
     }
 
+    /// The first collision along a ray as a weighted sample, with no binary choice
+    /// between colliding and passing through: ratio tracking along the whole ray
+    /// (tentative collisions at the majorant, each real density read once) gives at
+    /// every tentative collision t_i the weight w_i = T^(t_i) sigma_t(t_i) / sigma_maj,
+    /// with T^ the running ratio-tracking product before t_i, so that sum_i w_i f(t_i)
+    /// estimates the integral of T(t) sigma_t(t) f(t) dt without bias for any f (the
+    /// collision estimator). One t_i is kept, drawn with probability w_i / W by
+    /// reservoir sampling, with W = sum_i w_i: W f(t) is then an unbiased estimate of the
+    /// same integral that evaluates f once. Returns (the kept distance, W) or None when
+    /// every weight is 0, and the transmittance estimate T^ of the whole ray, all
+    /// within `t_max`. Russian roulette as in [`Medium::transmittance_ratio`] once the
+    /// product falls below its threshold.
+    pub fn sample_collision_weighted(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> (Option<(f32, f32)>, f32) {
+        self.sample_collision_guided(o, d, t_max, rng, |_| 1.0)
+    }
+
+    /// [`Medium::sample_collision_weighted`] with the kept collision drawn in
+    /// proportion to w_i g(x_i) for a guide g > 0 (resampled importance sampling):
+    /// the returned weight is then sum_j w_j g(x_j) / g(x_i), so that it times f(x_i)
+    /// is still an unbiased estimate of the integral of T sigma_t f, with less variance
+    /// where g follows f. The guide is read at every tentative collision with a weight.
+    pub fn sample_collision_guided(
+        &self,
+        o: Vec3,
+        d: Vec3,
+        t_max: f32,
+        rng: &mut Rng,
+        guide: impl Fn(Vec3) -> f32,
+    ) -> (Option<(f32, f32)>, f32) {
+        let mut tr = 1.0f32;
+        let (mut total, mut kept) = (0.0f32, None);
+        for seg in self.majorant.segments(o, d, 0.0, t_max) {
+            let sigma_maj = self.sigma_maj(&seg);
+            if sigma_maj <= 0.0 {
+                continue;
+            }
+            let alive = tentative_collisions(seg.t_min, seg.t_max, sigma_maj, rng, |t, rng| {
+                let x = o + d * t;
+                let sigma_t = self.sigma_t_estimate(x, rng);
+                let ratio = (sigma_t / sigma_maj).clamp(0.0, 1.0);
+                let w = tr * ratio;
+                if w > 0.0 {
+                    let g = guide(x);
+                    let wg = w * g;
+                    if wg > 0.0 && wg.is_finite() {
+                        total += wg;
+                        if rng.uniform() * total < wg {
+                            kept = Some((t, g));
+                        }
+                    }
+                }
+                tr *= 1.0 - ratio;
+                if tr <= 0.0 {
+                    return false;
+                }
+                if tr < RATIO_TRACKING_RR_THRESHOLD {
+                    if rng.uniform() < 0.5 {
+                        tr = 0.0;
+                        return false;
+                    }
+                    tr *= 2.0;
+                }
+                true
+            });
+            if !alive {
+                break;
+            }
+        }
+        (kept.map(|(t, g)| (t, total / g)), tr)
+    }
+
     /// Transmittance estimate by delta tracking: 1 if the free flight escapes, else 0.
     #[inline]
     pub fn transmittance_delta(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> f32 {

@@ -363,3 +363,103 @@ fn learned_preview_keeps_one_sun_field() {
     assert_eq!(lattice.source_bytes(), pyramid);
     assert_eq!(preview.memory_bytes(), preview.sun_transmittance().memory_bytes() + lattice.memory_bytes());
 }
+
+/// A predictor linear in the position, which a trilinear lattice reproduces exactly,
+/// counting its calls.
+struct Linear {
+    calls: std::sync::atomic::AtomicUsize,
+}
+
+impl Linear {
+    fn value(x: Vec3) -> f32 {
+        0.2 + 0.1 * x.x - 0.05 * x.y + 0.03 * x.z
+    }
+    fn calls(&self) -> usize {
+        self.calls.load(std::sync::atomic::Ordering::Relaxed)
+    }
+}
+
+impl engine::InScatterPredictor for Linear {
+    fn predict(&self, _: &Medium, _: &Sun, x: Vec3, omega: Vec3) -> f32 {
+        self.calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        // Toward +z the answer differs, so a query in another direction than the
+        // camera's that reached the lattice would be seen.
+        Self::value(x) + 0.01 * omega.z
+    }
+    fn predicts_single_scattering(&self) -> bool {
+        false
+    }
+    fn answers_any_light_direction(&self) -> bool {
+        false
+    }
+}
+
+/// Prediction at bounce 1 from the lattice toward the camera: at the first vertex it
+/// answers what the model answers (exactly, for a model the trilinear lattice
+/// reproduces), in every other direction it asks the model itself, and each node is
+/// asked once however many paths read it.
+#[test]
+fn camera_lattice_answers_the_first_vertex_from_nodes_evaluated_once() {
+    use engine::InScatterPredictor;
+    use engine::integrator::preview::CameraLatticePredictor;
+    let mut scene = sphere_scene(6.0, 0.9, 0.5, Vec3::new(0.3, -1.0, 0.2));
+    scene.camera = scene.camera.with_resolution(48, 48).unwrap();
+    let scene = Arc::new(scene);
+    let (medium, sun) = (&scene.medium, scene.sun.unwrap());
+    let eye = scene.camera.position();
+    let inner = Arc::new(Linear { calls: Default::default() });
+    let lattice = CameraLatticePredictor::new(&scene, inner.clone(), eye, 40).unwrap();
+    assert!(!lattice.answers_any_light_direction() && !lattice.predicts_single_scattering());
+    let nodes = lattice.nodes().element_product() as usize;
+    assert!(nodes > engine::integrator::preview::EAGER_LATTICE_NODES as usize, "a lazy lattice");
+    let mut rng = Rng::new(5, 0, 0);
+    let mut checked = 0;
+    while checked < 200 {
+        let x = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5;
+        if medium.sigma_t(x) <= 0.0 {
+            continue;
+        }
+        checked += 1;
+        let to_eye = (eye - x).normalize();
+        let calls = inner.calls();
+        let want = Linear::value(x) + 0.01 * to_eye.z;
+        let got = lattice.predict(medium, &sun, x, to_eye);
+        // The nodes' directions differ from x's by less than a degree: 0.01 omega.z
+        // moves by less than 2e-4 between them.
+        assert!((got - want).abs() < 3e-4, "at {x}: lattice {got}, model {want}");
+        // Another direction: the model itself, one call.
+        let other = Vec3::new(0.6, 0.0, -0.8);
+        assert_eq!(lattice.predict(medium, &sun, x, other), Linear::value(x) + 0.01 * other.z);
+        assert!(inner.calls() > calls);
+    }
+    // A render at k = 1: every camera path predicts at its first vertex, yet the
+    // model is asked at most once per node (twice where two threads reach a new node
+    // together), and the image is the model's up to the interpolation above, bit for
+    // bit the same on one thread and on two.
+    let render = |predictor: Arc<dyn InScatterPredictor>, threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| {
+            let settings =
+                RenderSettings { seed: 9, k: 1, mode: engine::Mode::Predict { p: 1.0 }, ..Default::default() };
+            let mut r = Renderer::new(scene.clone(), Integrator::new(settings, Some(predictor)).unwrap()).unwrap();
+            for _ in 0..256 {
+                r.render_pass(&RenderControl::new(), 0);
+            }
+            r.snapshot().mean(Buffer::High)
+        })
+    };
+    let before = inner.calls();
+    let fresh = |n| Arc::new(CameraLatticePredictor::new(&scene, inner.clone(), eye, n).unwrap());
+    let one = render(fresh(40), 1);
+    let lattice_calls = inner.calls() - before;
+    let two = render(fresh(40), 2);
+    assert!(one.iter().flatten().zip(two.iter().flatten()).all(|(a, b)| a.to_bits() == b.to_bits()));
+    let direct_before = inner.calls();
+    let direct = render(inner.clone(), 2);
+    let predictions = inner.calls() - direct_before;
+    assert!(lattice_calls <= nodes, "{lattice_calls} model calls for {nodes} nodes");
+    assert!(predictions > 2 * lattice_calls, "{predictions} predictions, {lattice_calls} of them asked of the model");
+    let sum = |img: &[[f32; 3]]| img.iter().map(|p| p[0] as f64).sum::<f64>();
+    let (a, b) = (sum(&one), sum(&direct));
+    assert!(b > 0.0 && ((a - b) / b).abs() < 1e-3, "lattice {a} against the model {b}");
+}

@@ -260,3 +260,66 @@ fn free_flight_distances_are_exponential() {
     let r = chi2_test(&obs, &exp, 5.0);
     assert!(r.p_value > 0.01, "{r:?}");
 }
+
+/// The weighted first collision (ratio tracking along the whole ray, one tentative
+/// collision kept by its weight): on every case its transmittance estimate has mean
+/// T = exp(-tau) and its weight W has mean 1 - T (the integral of T sigma_t over the
+/// ray); on the fine ramp (straight up, closed-form tau(t)) W times the indicator of
+/// the kept distance's bin has mean F(b1) - F(b0), F(t) = 1 - exp(-tau(t)), in each of
+/// 10 equal-probability bins, with the collision kept by weight alone and guided by a
+/// function of the position (resampled, W divided by the guide there). Tolerances: z-scores of each estimator's own standard
+/// error at family-wise alpha = 0.01.
+#[test]
+fn weighted_first_collision_matches_closed_form() {
+    let cases = cases();
+    let bins = 10usize;
+    let z = z_bound(0.01, 2 * cases.len() + 2 * bins);
+    for (i, c) in cases.iter().enumerate() {
+        let exact = (-c.tau).exp();
+        let mut rng = Rng::new(43, i as u64, 0);
+        let (mut tr, mut w) = (Welford::default(), Welford::default());
+        for _ in 0..N / 2 {
+            let (kept, t) = c.medium.sample_collision_weighted(c.o, c.d, c.t_max, &mut rng);
+            tr.add(t as f64);
+            w.add(kept.map_or(0.0, |(_, w)| w as f64));
+        }
+        let what = format!("{} case {i}", c.name);
+        assert!((tr.mean - exact).abs() < z * tr.std_error().max(1e-7), "{what}: T {} vs {exact}", tr.mean);
+        let want = 1.0 - exact;
+        assert!((w.mean - want).abs() < z * w.std_error().max(1e-7), "{what}: W {} vs {want}", w.mean);
+    }
+    let (a0, b0, rho) = (0.5f64, 0.8f64, 4.0f32);
+    let medium =
+        Medium::new(Arc::new(ramp_grid(64, a0 as f32, b0 as f32)), rho, 1.0, PhaseFunction::Isotropic).unwrap();
+    let (o, l) = (Vec3::new(0.1, -0.45, 0.2), 0.9f64);
+    let y0 = o.y as f64;
+    let tau = |t: f64| rho as f64 * (a0 * t + 0.5 * b0 * ((y0 + t).powi(2) - y0 * y0));
+    let f = |t: f64| 1.0 - (-tau(t)).exp();
+    let f_l = f(l);
+    // By weight alone, and guided by a positive function of the position.
+    for (g, guide) in
+        [&(|_: Vec3| 1.0f32) as &dyn Fn(Vec3) -> f32, &|x: Vec3| 0.3 + (x.y + 0.5).powi(2)].into_iter().enumerate()
+    {
+        let mut per_bin = vec![Welford::default(); bins];
+        let mut rng = Rng::new(44, g as u64, 0);
+        for _ in 0..N {
+            let (kept, _) = medium.sample_collision_guided(o, Vec3::Y, l as f32, &mut rng, guide);
+            let bin = kept.map(|(t, _)| (((f(t as f64) / f_l) * bins as f64) as usize).min(bins - 1));
+            for (b, acc) in per_bin.iter_mut().enumerate() {
+                acc.add(match (bin, kept) {
+                    (Some(k), Some((_, w))) if k == b => w as f64,
+                    _ => 0.0,
+                });
+            }
+        }
+        for (b, acc) in per_bin.iter().enumerate() {
+            let want = f_l / bins as f64;
+            assert!(
+                (acc.mean - want).abs() < z * acc.std_error(),
+                "guide {g}, bin {b}: {} vs {want} (se {})",
+                acc.mean,
+                acc.std_error()
+            );
+        }
+    }
+}

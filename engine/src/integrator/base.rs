@@ -17,6 +17,21 @@ pub enum Mode {
     Predict { p: f32 },
 }
 
+/// Where prediction at bounce 1 places its vertex on the camera ray.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum FirstVertex {
+    /// At the first real collision, by free-flight sampling (as path tracing does): a
+    /// camera ray through a thin or faint part of the cloud either scatters there or
+    /// passes, which is most of the noise left when the prediction is cheap.
+    FreeFlight,
+    /// At one tentative collision of ratio tracking along the whole camera ray, drawn
+    /// by its weight, with the sum of the weights as the throughput
+    /// ([`crate::Medium::sample_collision_weighted`]): the same expectation, without
+    /// the binary choice.
+    #[default]
+    Weighted,
+}
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RenderSettings {
     /// Scene seed: every random stream derives from (seed, pass, pixel).
@@ -26,11 +41,13 @@ pub struct RenderSettings {
     /// Highest scattering order rendered (None = all).
     pub max_order: Option<u32>,
     pub mode: Mode,
+    /// Prediction at k = 1: how the vertex is placed on the camera ray.
+    pub first_vertex: FirstVertex,
 }
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        RenderSettings { seed: 0, k: 1, max_order: None, mode: Mode::Reference }
+        RenderSettings { seed: 0, k: 1, max_order: None, mode: Mode::Reference, first_vertex: FirstVertex::Weighted }
     }
 }
 

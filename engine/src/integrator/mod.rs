@@ -22,7 +22,7 @@ pub mod p2p;
 pub mod path;
 pub mod preview;
 
-pub use base::{MisHeuristic, Mode, PathSample, RenderSettings};
+pub use base::{FirstVertex, MisHeuristic, Mode, PathSample, RenderSettings};
 
 use crate::predictor::{InScatterPredictor, TransportPredictor};
 use crate::rng::Rng;
@@ -71,6 +71,9 @@ pub struct Integrator {
     transport: Option<bdpt::Prediction>,
     /// The preview's fields, set by [`Integrator::preview`].
     preview: Option<Arc<preview::Preview>>,
+    /// The sun's transmittance that guides the weighted first vertex of prediction
+    /// at k = 1, set by [`Integrator::with_first_vertex_guide`].
+    guide: Option<Arc<crate::field::SunTransmittance>>,
 }
 
 impl std::fmt::Debug for Integrator {
@@ -101,7 +104,28 @@ impl Integrator {
                 return Err(IntegratorError::NoPredictor);
             }
         }
-        Ok(Integrator { settings, predictor, technique: Technique::PathTracing, transport: None, preview: None })
+        Ok(Integrator {
+            settings,
+            predictor,
+            technique: Technique::PathTracing,
+            transport: None,
+            preview: None,
+            guide: None,
+        })
+    }
+
+    /// The weighted first vertex of prediction at k = 1 drawn among the camera ray's
+    /// tentative collisions in proportion to their weight times the single scattering
+    /// `field` predicts there (plus a floor), not to their weight alone (see
+    /// [`path`]): the same expectation, the vertex sent where the sunlight is.
+    pub fn with_first_vertex_guide(mut self, field: Arc<crate::field::SunTransmittance>) -> Self {
+        self.guide = Some(field);
+        self
+    }
+
+    /// The field guiding the first vertex, if any ([`Integrator::with_first_vertex_guide`]).
+    pub fn first_vertex_guide(&self) -> Option<&Arc<crate::field::SunTransmittance>> {
+        self.guide.as_ref()
     }
 
     /// BDPT with prediction between the subpaths (thesis 6.4): `settings.mode` must be
@@ -136,6 +160,7 @@ impl Integrator {
             technique: Technique::Bdpt(b),
             transport: Some(prediction),
             preview: None,
+            guide: None,
         })
     }
 
@@ -150,6 +175,7 @@ impl Integrator {
             technique: Technique::Preview,
             transport: None,
             preview: Some(preview),
+            guide: None,
         })
     }
 
@@ -298,7 +324,7 @@ impl Integrator {
         if let Some(p) = self.active_preview() {
             return p.trace(scene, o, d, rng);
         }
-        path::trace(&self.settings, self.predictor.as_deref(), scene, o, d, rng)
+        path::trace(&self.settings, self.predictor.as_deref(), self.guide.as_deref(), scene, o, d, rng)
     }
 
     /// Evaluates predictions left by [`Integrator::trace_deferring`] in one batch and

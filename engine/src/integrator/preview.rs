@@ -172,6 +172,73 @@ impl LearnedLattice {
     }
 }
 
+/// Prediction at bounce 1 from a lattice of the model's answers: at the first vertex
+/// of a camera path the direction toward the previous vertex is the direction toward
+/// the camera, so the model's answer there is, up to trilinear interpolation, the
+/// value of a lattice of its answers toward the camera ([`Preview::learned_lattice`]'s
+/// fine lattice, each node evaluated when first read and then shared by every pass).
+/// A prediction then costs a lattice lookup in place of features and a network, and
+/// its cost no longer limits how often to predict. Queries in any other direction
+/// (vertices beyond the first) go to the model itself. Bound to the scene's sun and
+/// camera: it answers for that sun alone, as the models bound to a cloud do.
+pub struct CameraLatticePredictor {
+    lattice: LearnedLattice,
+    inner: Arc<dyn InScatterPredictor>,
+    camera: Vec3,
+    name: String,
+}
+
+/// The least cosine between a query's direction and the direction toward the camera
+/// for which [`CameraLatticePredictor`] answers from its lattice (at the first vertex
+/// they are the same direction, up to rounding).
+pub const CAMERA_LATTICE_COS: f32 = 1.0 - 1e-4;
+
+impl CameraLatticePredictor {
+    /// `inner`'s answers toward `camera` on a lattice of at most `max_nodes` per axis
+    /// over the scene's medium. None for a predictor that answers for any light
+    /// direction (the integrator would ask it for other directions than the scene's
+    /// sun) or a scene without a sun.
+    pub fn new(scene: &Scene, inner: Arc<dyn InScatterPredictor>, camera: Vec3, max_nodes: u32) -> Option<Self> {
+        if inner.answers_any_light_direction() || scene.sun.is_none() {
+            return None;
+        }
+        let lattice = Preview::lattice_of(scene, None, inner.clone(), camera, max_nodes);
+        let name = format!("{} (camera lattice)", inner.name());
+        Some(CameraLatticePredictor { lattice, inner, camera, name })
+    }
+
+    /// The lattice's nodes per axis.
+    pub fn nodes(&self) -> glam::UVec3 {
+        self.lattice.nodes()
+    }
+}
+
+impl InScatterPredictor for CameraLatticePredictor {
+    #[inline]
+    fn predict(&self, medium: &Medium, sun: &crate::light::Sun, x: Vec3, omega: Vec3) -> f32 {
+        match (self.camera - x).try_normalize() {
+            Some(to_camera) if to_camera.dot(omega) >= CAMERA_LATTICE_COS => self.lattice.lookup(x, 1.0),
+            _ => self.inner.predict(medium, sun, x, omega),
+        }
+    }
+
+    fn predicts_single_scattering(&self) -> bool {
+        self.inner.predicts_single_scattering()
+    }
+
+    fn answers_any_light_direction(&self) -> bool {
+        false
+    }
+
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn memory_bytes(&self) -> usize {
+        self.lattice.memory_bytes()
+    }
+}
+
 /// The preview's state for one scene: the sun's transmittance and the multiple
 /// scattering source, shared by every sample.
 #[derive(Clone, Debug)]
@@ -240,6 +307,19 @@ impl Preview {
         camera: Vec3,
         max_nodes: u32,
     ) -> LearnedLattice {
+        Self::lattice_of(scene, Some(sun), predictor, camera, max_nodes)
+    }
+
+    /// [`Preview::learned_lattice`] of a predictor's own quantity: `single` the sun
+    /// field whose single scattering is taken off a predictor of total in-scattered
+    /// radiance, None to keep what the predictor answers.
+    fn lattice_of(
+        scene: &Scene,
+        single: Option<&Arc<SunTransmittance>>,
+        predictor: Arc<dyn InScatterPredictor>,
+        camera: Vec3,
+        max_nodes: u32,
+    ) -> LearnedLattice {
         let medium = scene.medium.clone();
         let (n, spacing) = lattice_over(&medium, max_nodes);
         let origin = medium.grid().support_bounds().min;
@@ -251,11 +331,10 @@ impl Preview {
                 vec![0.0; (n.x * n.y * n.z) as usize],
             ));
         };
-        let total = predictor.predicts_single_scattering();
+        let single = single.filter(|_| predictor.predicts_single_scattering()).cloned();
         let model_bytes = predictor.memory_bytes();
-        let sun = sun.clone();
         let source = move |spacing: Vec3| -> NodeSource {
-            let (medium, predictor, sun) = (medium.clone(), predictor.clone(), sun.clone());
+            let (medium, predictor, single) = (medium.clone(), predictor.clone(), single.clone());
             Arc::new(move |p: Vec3| {
                 // A node is read wherever its lattice cells are: it is needed unless
                 // the medium is empty across all of them.
@@ -264,7 +343,10 @@ impl Preview {
                 }
                 let Some(omega) = (camera - p).try_normalize() else { return 0.0 };
                 let li = predictor.predict(&medium, &light, p, omega);
-                let ms = if total { li - medium.phase().eval(omega, sun.to_sun()) * sun.at(p) } else { li };
+                let ms = match &single {
+                    Some(sun) => li - medium.phase().eval(omega, sun.to_sun()) * sun.at(p),
+                    None => li,
+                };
                 if ms.is_finite() { ms.max(0.0) } else { 0.0 }
             })
         };

@@ -108,6 +108,16 @@ pub struct EvalArgs {
     /// scattering (default: the scene files', one node per voxel up to 128).
     #[arg(long, value_parser = clap::value_parser!(u32).range(2..=1024))]
     pub preview_nodes: Option<u32>,
+    /// Nodes per axis, at most, of the lattice of the model's answers toward the
+    /// camera that prediction at k = 1 reads; 0 evaluates the model at every
+    /// predicted vertex, as at other k (default: the scene files',
+    /// render.prediction_lattice).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=256))]
+    pub prediction_lattice: Option<u32>,
+    /// Where prediction at k = 1 places its vertex: guided (default), weighted or
+    /// free-flight (render.first_vertex).
+    #[arg(long, value_parser = ["guided", "weighted", "free-flight"])]
+    pub first_vertex: Option<String>,
     /// Light every scene by the evaluation sky as well as the sun ([`EVAL_SKY`]: a
     /// clear-day gradient over a ground of albedo 0.3), for the bias of prediction
     /// under sun + sky against the same scenes under the sun alone.
@@ -189,7 +199,16 @@ fn predictor_kind(args: &EvalArgs) -> Result<PredictorKind> {
 /// The cache name of one prediction cell: everything its numbers depend on.
 fn cell_key(key: &str, k: u32, args: &EvalArgs, model_id: &str) -> String {
     let p = if args.auto_p { "auto".to_string() } else { args.p.to_string() };
-    format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}_{model_id}", args.spp, args.spp_ref, args.field_nodes)
+    // Prediction at k = 1 reads a lattice of the model's answers unless told not to.
+    let nodes = args.prediction_lattice.unwrap_or(crate::scene::DEFAULT_PREDICTION_LATTICE);
+    let lattice = if k == 1 && nodes > 0 { format!("_lat{nodes}") } else { String::new() };
+    let lattice = match (k, args.first_vertex.as_deref()) {
+        (1, Some("free-flight")) => lattice,
+        (1, Some("weighted")) => format!("{lattice}_wfv"),
+        (1, _) => format!("{lattice}_gfv"),
+        _ => lattice,
+    };
+    format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}{lattice}_{model_id}", args.spp, args.spp_ref, args.field_nodes)
 }
 
 /// The sky of `nimbus eval --sky`: zenith and horizon radiance of a clear day (blue
@@ -280,6 +299,12 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         let mut file = eval_scene(preset, config, *rho, args.size, args.res, args.sky)?;
         if let Some(n) = args.preview_nodes {
             file.render.preview_nodes = n;
+        }
+        if let Some(n) = args.prediction_lattice {
+            file.render.prediction_lattice = n;
+        }
+        if let Some(v) = &args.first_vertex {
+            file.render.first_vertex = v.clone();
         }
         let grid = match grids.iter().find(|(p, _)| p == preset) {
             Some((_, g)) => g.clone(),
@@ -403,17 +428,29 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             f.render.p = args.p;
             let t_pilot = Instant::now();
             if args.auto_p {
-                f.render.p = crate::progressive::auto_p(scene.clone(), f.settings(), pred.clone(), 8, &control)?.p;
+                let pilot = f.prediction_predictor(&scene, pred.clone());
+                f.render.p = crate::progressive::auto_p(scene.clone(), f.settings(), pilot, 8, &control)?.p;
             }
             let secs_pilot = if args.auto_p { t_pilot.elapsed().as_secs_f64() } else { 0.0 };
-            let integrator = f.integrator_with(Some(pred))?;
+            // A lattice of its own (not the pilot's), so the render's time includes
+            // filling it.
+            let integrator = f.integrator_with(Some(f.prediction_predictor(&scene, pred)))?;
+            // The guide's field is built for this render (as for a new cloud) and its
+            // seconds count with the render's.
+            let t_guide = Instant::now();
+            let guide = f.first_vertex_guide(&scene, &mut Default::default(), engine::Cancel::NEVER)?;
+            let secs_guide = t_guide.elapsed().as_secs_f64();
+            let integrator = match guide {
+                Some(field) => integrator.with_first_vertex_guide(field),
+                None => integrator,
+            };
             let t =
                 render_tracked(scene.clone(), integrator, args.spp, &control, Some((&reference, &mask)), false, |d| {
                     bar.set_position(kbase + d as u64)
                 })?;
             let full = Image::from_film(&t.film, Buffer::Full);
             let (b, rb, floor) = bias_in(&reference, &full, &mask);
-            let ttuv_pred = ttuv(&full.var, &mask, t.seconds);
+            let ttuv_pred = ttuv(&full.var, &mask, t.seconds + secs_guide);
             let rmse_floor = relative_rmse_less(&full.mean, &reference, &mask, Some(&full.var));
             let cell = CellResult {
                 scene: label.to_string(),
@@ -431,7 +468,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 ttuv_pred,
                 speedup: if ttuv_pred > 0.0 { meta.ttuv / ttuv_pred } else { f64::INFINITY },
                 secs_ref: meta.seconds,
-                secs_pred: t.seconds,
+                secs_pred: t.seconds + secs_guide,
                 secs_field,
                 secs_pilot,
                 preview_secs_pred: t.preview_secs,
