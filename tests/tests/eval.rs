@@ -36,6 +36,8 @@ fn small_study(out: std::path::PathBuf) -> EvalArgs {
         preview_passes: 8,
         preview_repeats: 1,
         preview_nodes: None,
+        prediction_lattice: None,
+        first_vertex: None,
         sky: false,
         out,
         run: RunArgs { threads: None, quiet: true },
