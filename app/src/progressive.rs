@@ -78,15 +78,15 @@ pub struct AutoP {
 /// pilots use their own seed and are discarded.
 pub fn auto_p(
     scene: Arc<Scene>,
-    settings: engine::RenderSettings,
-    predictor: Arc<dyn engine::InScatterPredictor>,
+    integrator: &Integrator,
     pilot_spp: u32,
     control: &RenderControl,
 ) -> anyhow::Result<AutoP> {
     use engine::{Buffer, Mode};
+    let settings = *integrator.settings();
     let pilot = |p: f32, spp: u32| -> anyhow::Result<RenderOutcome> {
         let s = engine::RenderSettings { seed: settings.seed ^ 0x5eed_a070, mode: Mode::Predict { p }, ..settings };
-        let out = render_spp(scene.clone(), Integrator::new(s, Some(predictor.clone()))?, spp, control, |_| {})?;
+        let out = render_spp(scene.clone(), integrator.with_settings(s)?, spp, control, |_| {})?;
         if out.stopped {
             anyhow::bail!("stopped while choosing p");
         }

@@ -1216,6 +1216,14 @@ mod tests {
         assert!(!s.to_toml().contains("first_vertex"));
         assert!(setup(&s).first_vertex_guide().is_some());
         assert_eq!(setup(&s).settings().first_vertex, engine::FirstVertex::Weighted);
+        // Another p (the automatic p's pilots and render) keeps the guide and the
+        // lattice; a p outside (0, 1] is refused.
+        let guided = setup(&s);
+        let other = RenderSettings { mode: Mode::Predict { p: 0.3 }, ..*guided.settings() };
+        let again = guided.with_settings(other).unwrap();
+        assert!(again.first_vertex_guide().is_some());
+        assert!(again.predictor().unwrap().name().contains("camera lattice"));
+        assert!(guided.with_settings(RenderSettings { mode: Mode::Predict { p: 0.0 }, ..other }).is_err());
         assert!(setup(&k2).first_vertex_guide().is_none());
         let mut weighted = s.clone();
         weighted.render.first_vertex = "weighted".into();

@@ -395,10 +395,10 @@ fn automatic_p_follows_variance_and_cost() {
         Arc::new(cumulus_scene(32, 20.0, 1.0, PhaseFunction::HenyeyGreenstein { g: 0.85 }, Some(sun), Vec3::ZERO, 24));
     let settings = RenderSettings { seed: 3, k: 1, mode: Mode::Predict { p: 0.5 }, ..Default::default() };
     let control = RenderControl::new();
-    let zero =
-        app::progressive::auto_p(scene.clone(), settings, Arc::new(ConstantPredictor(0.0)), 8, &control).unwrap();
+    let integrator = |v: f32| Integrator::new(settings, Some(Arc::new(ConstantPredictor(v)))).unwrap();
+    let zero = app::progressive::auto_p(scene.clone(), &integrator(0.0), 8, &control).unwrap();
     assert_eq!(zero.p, 0.05, "{zero:?}");
-    let one = app::progressive::auto_p(scene, settings, Arc::new(ConstantPredictor(1.0)), 8, &control).unwrap();
+    let one = app::progressive::auto_p(scene, &integrator(1.0), 8, &control).unwrap();
     assert!(one.b > 0.0 && one.p == 1.0, "{one:?}");
 }
 

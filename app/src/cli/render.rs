@@ -189,14 +189,14 @@ pub fn render(args: RenderArgs) -> Result<()> {
     let mut integrator = setup.integrator;
     let control = Arc::new(RenderControl::new());
     stop_on_ctrl_c(&control);
-    if let (true, Some(pred)) = (args.auto_p, integrator.predictor().cloned()) {
-        let a = crate::progressive::auto_p(scene.clone(), *integrator.settings(), pred.clone(), 8, &control)?;
+    if args.auto_p && integrator.predictor().is_some() {
+        let a = crate::progressive::auto_p(scene.clone(), &integrator, 8, &control)?;
         eprintln!(
             "automatic p = {:.3} (V1 {:.3e}, B {:.3e}, c0 {:.3} s, c1 {:.3} s per pass)",
             a.p, a.v1, a.b, a.c0, a.c1
         );
         let settings = engine::RenderSettings { mode: engine::Mode::Predict { p: a.p }, ..*integrator.settings() };
-        integrator = engine::Integrator::new(settings, Some(pred))?;
+        integrator = integrator.with_settings(settings)?;
     }
     let mode = match integrator.settings().mode {
         _ if let Some(preview) = integrator.preview_state() => match preview.multiple() {

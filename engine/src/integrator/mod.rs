@@ -123,6 +123,17 @@ impl Integrator {
         self
     }
 
+    /// The same integrator (technique, predictor, fields, guide) with other render
+    /// settings; an error for a prediction probability outside (0, 1].
+    pub fn with_settings(&self, settings: RenderSettings) -> Result<Self, IntegratorError> {
+        if let Mode::Predict { p } = settings.mode {
+            if !(p > 0.0 && p <= 1.0) {
+                return Err(IntegratorError::BadP(p));
+            }
+        }
+        Ok(Integrator { settings, ..self.clone() })
+    }
+
     /// The field guiding the first vertex, if any ([`Integrator::with_first_vertex_guide`]).
     pub fn first_vertex_guide(&self) -> Option<&Arc<crate::field::SunTransmittance>> {
         self.guide.as_ref()

@@ -427,23 +427,27 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             f.render.mode = "predict".into();
             f.render.p = args.p;
             let t_pilot = Instant::now();
+            // The integrator of prediction mode: the model (at k = 1 through a lattice
+            // of its own, so the render's time includes filling it) and the first
+            // vertex's guide, whose field is built for this render (as for a new
+            // cloud) and whose seconds count with the render's.
+            let integrate = |f: &SceneFile| -> Result<(engine::Integrator, f64)> {
+                let integrator = f.integrator_with(Some(f.prediction_predictor(&scene, pred.clone())))?;
+                let t_guide = Instant::now();
+                let guide = f.first_vertex_guide(&scene, &mut Default::default(), engine::Cancel::NEVER)?;
+                let secs = t_guide.elapsed().as_secs_f64();
+                let integrator = match guide {
+                    Some(g) => integrator.with_first_vertex_guide(g),
+                    None => integrator,
+                };
+                Ok((integrator, secs))
+            };
             if args.auto_p {
-                let pilot = f.prediction_predictor(&scene, pred.clone());
-                f.render.p = crate::progressive::auto_p(scene.clone(), f.settings(), pilot, 8, &control)?.p;
+                let (pilot, _) = integrate(&f)?;
+                f.render.p = crate::progressive::auto_p(scene.clone(), &pilot, 8, &control)?.p;
             }
             let secs_pilot = if args.auto_p { t_pilot.elapsed().as_secs_f64() } else { 0.0 };
-            // A lattice of its own (not the pilot's), so the render's time includes
-            // filling it.
-            let integrator = f.integrator_with(Some(f.prediction_predictor(&scene, pred)))?;
-            // The guide's field is built for this render (as for a new cloud) and its
-            // seconds count with the render's.
-            let t_guide = Instant::now();
-            let guide = f.first_vertex_guide(&scene, &mut Default::default(), engine::Cancel::NEVER)?;
-            let secs_guide = t_guide.elapsed().as_secs_f64();
-            let integrator = match guide {
-                Some(field) => integrator.with_first_vertex_guide(field),
-                None => integrator,
-            };
+            let (integrator, secs_guide) = integrate(&f)?;
             let t =
                 render_tracked(scene.clone(), integrator, args.spp, &control, Some((&reference, &mask)), false, |d| {
                     bar.set_position(kbase + d as u64)
