@@ -822,14 +822,10 @@ impl SceneFile {
             return self.bdpt_prediction(scene, cache);
         }
         match self.bound_model(scene, max_nodes, None, cache, cancel)? {
-            Ok(bound) => {
-                let integrator = self.integrator_with(Some(self.prediction_predictor(scene, bound)))?;
-                let integrator = match self.first_vertex_guide(scene, cache, cancel)? {
-                    Some(field) => integrator.with_first_vertex_guide(field),
-                    None => integrator,
-                };
-                Ok(IntegratorSetup { integrator, warning: None })
-            }
+            Ok(bound) => Ok(IntegratorSetup {
+                integrator: self.prediction_integrator(scene, bound, cache, cancel)?,
+                warning: None,
+            }),
             Err(e) => {
                 let mut reference = self.clone();
                 reference.render.mode = "reference".into();
@@ -841,45 +837,57 @@ impl SceneFile {
         }
     }
 
-    /// The sun's transmittance that guides prediction's first vertex at k = 1 under
-    /// `render.first_vertex = "guided"` (reused from `cache` for the same cloud, rho
-    /// and sun, as the preview's), else None.
-    pub fn first_vertex_guide(
+    /// The sun's transmittance over `scene`'s medium at most `nodes` per axis, from
+    /// `cache` for the same cloud, rho and sun, else built (stopping when `cancel`
+    /// asks) and left there. Two are kept: the window asks for two sizes per change
+    /// (the first look's preview, the full one's).
+    fn sun_field(
         &self,
         scene: &Scene,
+        sun: &Sun,
+        nodes: u32,
         cache: &mut PredictorCache,
         cancel: Cancel,
-    ) -> Result<Option<Arc<SunTransmittance>>, SceneError> {
-        let Some(sun) = scene.sun.as_ref().filter(|_| self.k == 1 && self.render.first_vertex == "guided") else {
-            return Ok(None);
-        };
-        let nodes = SunTransmittance::DEFAULT_MAX_NODES;
+    ) -> Result<Arc<SunTransmittance>, SceneError> {
         let key = PredictorKey { model: None, other_lights: false, ..PredictorKey::new(self, scene, nodes) };
         if let Some((_, f)) = cache.sun.iter().find(|(k, _)| *k == key) {
-            return Ok(Some(f.clone()));
+            return Ok(f.clone());
         }
         let f =
             Arc::new(SunTransmittance::build_until(&scene.medium, sun, nodes, cancel).ok_or(SceneError::Cancelled)?);
         cache.sun.insert(0, (key, f.clone()));
         cache.sun.truncate(2);
-        Ok(Some(f))
+        Ok(f)
     }
 
-    /// What prediction mode asks for `bound`'s answers: at k = 1, unless
-    /// `render.prediction_lattice` is 0, a lattice of them toward the camera
-    /// ([`CameraLatticePredictor`]), else the bound model itself.
-    pub fn prediction_predictor(
+    /// Prediction mode's integrator for the model `bound` to `scene`: at k = 1, unless
+    /// `render.prediction_lattice` is 0, the model read from a lattice of its answers
+    /// toward the camera ([`CameraLatticePredictor`]), and under `render.first_vertex =
+    /// "guided"` the first vertex guided by the sun's transmittance (from `cache` as
+    /// the preview's field, [`SceneFile::sun_field`]).
+    pub fn prediction_integrator(
         &self,
         scene: &Scene,
         bound: Arc<dyn InScatterPredictor>,
-    ) -> Arc<dyn InScatterPredictor> {
+        cache: &mut PredictorCache,
+        cancel: Cancel,
+    ) -> Result<Integrator, SceneError> {
+        let first = self.k == 1;
         let nodes = self.render.prediction_lattice;
-        if self.k != 1 || nodes == 0 {
-            return bound;
-        }
-        match CameraLatticePredictor::new(scene, bound.clone(), scene.camera.position(), nodes) {
+        let lattice = (first && nodes > 0)
+            .then(|| CameraLatticePredictor::new(scene, bound.clone(), scene.camera.position(), nodes))
+            .flatten();
+        let predictor: Arc<dyn InScatterPredictor> = match lattice {
             Some(lattice) => Arc::new(lattice),
             None => bound,
+        };
+        let integrator = self.integrator_with(Some(predictor))?;
+        match scene.sun.as_ref() {
+            Some(sun) if first && self.render.first_vertex == "guided" => {
+                let field = self.sun_field(scene, sun, SunTransmittance::DEFAULT_MAX_NODES, cache, cancel)?;
+                Ok(integrator.with_first_vertex_guide(field))
+            }
+            _ => Ok(integrator),
         }
     }
 
@@ -955,21 +963,7 @@ impl SceneFile {
         // The sun's field: 4 nodes per depth-field node per axis (256 at the default
         // 64, the field's own default; 96 for the window's coarse 24).
         let sun_nodes = (4 * max_nodes).clamp(2, SunTransmittance::DEFAULT_MAX_NODES);
-        let key = PredictorKey { model: None, other_lights: false, ..PredictorKey::new(self, scene, sun_nodes) };
-        let field = match cache.sun.iter().position(|(k, _)| *k == key) {
-            Some(i) => cache.sun[i].1.clone(),
-            None => {
-                let f = Arc::new(
-                    SunTransmittance::build_until(&scene.medium, sun, sun_nodes, cancel)
-                        .ok_or(SceneError::Cancelled)?,
-                );
-                // Two sizes per change in the window (the first look's, the full
-                // preview's): keep both.
-                cache.sun.insert(0, (key, f.clone()));
-                cache.sun.truncate(2);
-                f
-            }
-        };
+        let field = self.sun_field(scene, sun, sun_nodes, cache, cancel)?;
         let mut warning = None;
         let multiple = if self.render.preview == "octaves" {
             self.octaves()

@@ -314,6 +314,19 @@ pub struct Medium {
 /// Transmittance below which ratio tracking plays Russian roulette (unbiased).
 const RATIO_TRACKING_RR_THRESHOLD: f32 = 0.1;
 
+/// Russian roulette on a ratio-tracking product below [`RATIO_TRACKING_RR_THRESHOLD`]:
+/// it survives with probability 1/2 and is doubled. False when it ends.
+#[inline(always)]
+fn roulette_product(tr: &mut f32, rng: &mut Rng) -> bool {
+    if *tr < RATIO_TRACKING_RR_THRESHOLD {
+        if rng.uniform() < 0.5 {
+            return false;
+        }
+        *tr *= 2.0;
+    }
+    true
+}
+
 impl Medium {
     pub fn new(grid: Arc<DensityGrid>, rho: f32, albedo: f32, phase: PhaseFunction) -> Result<Self, MediumError> {
         let cells = MajorantGrid::default_cell_voxels(&grid);
@@ -426,8 +439,10 @@ impl Medium {
 
     /// The tracking loop: walks the majorant segments of `o + t d` (d unit length),
     /// samples tentative collisions with the local majorant, and calls
-    /// `f(t, p, sigma_t(p), sigma_maj, rng)` at each one. `f` returns false to stop.
-    /// Returns true if the ray passed `t_max` or left the medium.
+    /// `f(t, p, sigma_t, sigma_maj, rng)` at each one, with sigma_t the one-voxel
+    /// estimate of sigma_t(p) the trackers read ([`Medium::sigma_t_estimate`]; its
+    /// expectation is sigma_t(p), so a caller linear in it stays unbiased). `f` returns
+    /// false to stop. Returns true if the ray passed `t_max` or left the medium.
     #[inline]
     pub fn sample_t_maj<F>(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng, mut f: F) -> bool
     where
@@ -440,7 +455,7 @@ impl Medium {
             }
             let going = tentative_collisions(seg.t_min, seg.t_max, sigma_maj, rng, |t, rng| {
                 let p = o + d * t;
-                let sigma_t = self.sigma_t(p);
+                let sigma_t = self.sigma_t_estimate(p, rng);
                 debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
                 f(t, p, sigma_t, sigma_maj, rng)
             });
@@ -546,13 +561,7 @@ impl Medium {
                 let sigma_t = self.sigma_t_estimate(o + d * t, rng);
                 debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
                 tr *= 1.0 - (sigma_t - sigma_c) / sigma_r;
-                if tr < RATIO_TRACKING_RR_THRESHOLD {
-                    if rng.uniform() < 0.5 {
-                        return false;
-                    }
-                    tr *= 2.0;
-                }
-                true
+                roulette_product(&mut tr, rng)
             });
             if !alive {
                 return 0.0;
@@ -592,43 +601,26 @@ impl Medium {
     ) -> (Option<(f32, f32)>, f32) {
         let mut tr = 1.0f32;
         let (mut total, mut kept) = (0.0f32, None);
-        for seg in self.majorant.segments(o, d, 0.0, t_max) {
-            let sigma_maj = self.sigma_maj(&seg);
-            if sigma_maj <= 0.0 {
-                continue;
-            }
-            let alive = tentative_collisions(seg.t_min, seg.t_max, sigma_maj, rng, |t, rng| {
-                let x = o + d * t;
-                let sigma_t = self.sigma_t_estimate(x, rng);
-                let ratio = (sigma_t / sigma_maj).clamp(0.0, 1.0);
-                let w = tr * ratio;
-                if w > 0.0 {
-                    let g = guide(x);
-                    let wg = w * g;
-                    if wg > 0.0 && wg.is_finite() {
-                        total += wg;
-                        if rng.uniform() * total < wg {
-                            kept = Some((t, g));
-                        }
+        self.sample_t_maj(o, d, t_max, rng, |t, x, sigma_t, sigma_maj, rng| {
+            let ratio = (sigma_t / sigma_maj).clamp(0.0, 1.0);
+            let w = tr * ratio;
+            if w > 0.0 {
+                let g = guide(x);
+                let wg = w * g;
+                if wg > 0.0 && wg.is_finite() {
+                    total += wg;
+                    if rng.uniform() * total < wg {
+                        kept = Some((t, g));
                     }
                 }
-                tr *= 1.0 - ratio;
-                if tr <= 0.0 {
-                    return false;
-                }
-                if tr < RATIO_TRACKING_RR_THRESHOLD {
-                    if rng.uniform() < 0.5 {
-                        tr = 0.0;
-                        return false;
-                    }
-                    tr *= 2.0;
-                }
-                true
-            });
-            if !alive {
-                break;
             }
-        }
+            tr *= 1.0 - ratio;
+            if tr > 0.0 && roulette_product(&mut tr, rng) {
+                return true;
+            }
+            tr = 0.0;
+            false
+        });
         (kept.map(|(t, g)| (t, total / g)), tr)
     }
 

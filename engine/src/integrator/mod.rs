@@ -93,17 +93,7 @@ impl Integrator {
         settings: RenderSettings,
         predictor: Option<Arc<dyn InScatterPredictor>>,
     ) -> Result<Self, IntegratorError> {
-        if settings.k < 1 {
-            return Err(IntegratorError::BadK(settings.k));
-        }
-        if let Mode::Predict { p } = settings.mode {
-            if !(p > 0.0 && p <= 1.0) {
-                return Err(IntegratorError::BadP(p));
-            }
-            if predictor.is_none() {
-                return Err(IntegratorError::NoPredictor);
-            }
-        }
+        Self::check(&settings, predictor.is_some())?;
         Ok(Integrator {
             settings,
             predictor,
@@ -123,14 +113,27 @@ impl Integrator {
         self
     }
 
-    /// The same integrator (technique, predictor, fields, guide) with other render
-    /// settings; an error for a prediction probability outside (0, 1].
-    pub fn with_settings(&self, settings: RenderSettings) -> Result<Self, IntegratorError> {
+    /// Settings a path-tracing integrator accepts: k >= 1, and in prediction mode a p
+    /// in (0, 1] and a predictor.
+    fn check(settings: &RenderSettings, has_predictor: bool) -> Result<(), IntegratorError> {
+        if settings.k < 1 {
+            return Err(IntegratorError::BadK(settings.k));
+        }
         if let Mode::Predict { p } = settings.mode {
             if !(p > 0.0 && p <= 1.0) {
                 return Err(IntegratorError::BadP(p));
             }
+            if !has_predictor {
+                return Err(IntegratorError::NoPredictor);
+            }
         }
+        Ok(())
+    }
+
+    /// The same integrator (technique, predictor, fields, guide) with other render
+    /// settings, checked as [`Integrator::new`] checks them.
+    pub fn with_settings(&self, settings: RenderSettings) -> Result<Self, IntegratorError> {
+        Self::check(&settings, self.predictor.is_some())?;
         Ok(Integrator { settings, ..self.clone() })
     }
 

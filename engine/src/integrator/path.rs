@@ -65,51 +65,37 @@ pub(crate) fn trace(
     rng: &mut Rng,
 ) -> PathSample {
     let mut out = PathSample::default();
-    if let (Mode::Predict { p }, 1, Some(pred), FirstVertex::Weighted) =
-        (settings.mode, settings.k, predictor, settings.first_vertex)
-    {
-        // The first vertex drawn among ratio tracking's tentative collisions, weighted
-        // (see the module documentation); the sky is seen through the ray's estimated
-        // transmittance.
-        let medium = &scene.medium;
-        let (kept, tr) = match guide {
-            // Single scattering along the ray is p(wo, sun) T_sun(x), the phase the
-            // same at every point: the guide is that plus a floor for the orders the
-            // prediction adds, which dominate where the phase or the sun is small.
-            Some(field) => {
-                let phase = medium.phase().eval(-d, field.to_sun());
-                medium.sample_collision_guided(o, d, f32::INFINITY, rng, |x| phase * field.at(x) + GUIDE_FLOOR)
-            }
-            None => medium.sample_collision_weighted(o, d, f32::INFINITY, rng),
-        };
-        if tr > 0.0 {
-            out.direct = scene.sky.radiance(d) * tr;
+    let medium = &scene.medium;
+    // The camera ray's vertex, its throughput before the albedo, and the sky seen
+    // through the ray: by free flight (path tracing) the first real collision with
+    // throughput 1, or the sky wholly; for prediction at k = 1 by default one
+    // tentative collision of ratio tracking, weighted (see the module documentation).
+    let weighted = matches!(settings.mode, Mode::Predict { .. })
+        && settings.k == 1
+        && predictor.is_some()
+        && settings.first_vertex == FirstVertex::Weighted;
+    let (vertex, tr) = match guide {
+        // Single scattering along the ray is p(wo, sun) T_sun(x), the phase the same
+        // at every point: the guide is that plus a floor for the orders the prediction
+        // adds, which dominate where the phase or the sun is small.
+        Some(field) if weighted => {
+            let phase = medium.phase().eval(-d, field.to_sun());
+            medium.sample_collision_guided(o, d, f32::INFINITY, rng, |x| phase * field.at(x) + GUIDE_FLOOR)
         }
-        if let (Some((t, w)), true) = (kept, settings.max_order.is_none_or(|m| m >= 1)) {
-            let beta = w * medium.albedo();
-            predict_at_vertex(scene, pred, p, o + d * t, -d, beta, 1, rng, &mut |_, v| out.high += v);
-        }
-        return out;
+        _ if weighted => medium.sample_collision_weighted(o, d, f32::INFINITY, rng),
+        _ => match medium.sample_free_flight(o, d, f32::INFINITY, rng) {
+            FreeFlight::Escaped => (None, 1.0),
+            FreeFlight::Collision { t } => (Some((t, 1.0)), 0.0),
+        },
+    };
+    if tr > 0.0 {
+        out.direct = scene.sky.radiance(d) * tr;
     }
-    match scene.medium.sample_free_flight(o, d, f32::INFINITY, rng) {
-        FreeFlight::Escaped => out.direct = scene.sky.radiance(d),
-        FreeFlight::Collision { t } => {
-            let k = settings.k;
-            scatter_from(
-                settings,
-                predictor,
-                scene,
-                o + d * t,
-                -d,
-                1,
-                scene.medium.albedo(),
-                1,
-                rng,
-                &mut |order, v| {
-                    if order >= k { out.high += v } else { out.low += v }
-                },
-            );
-        }
+    if let Some((t, w)) = vertex {
+        let k = settings.k;
+        scatter_from(settings, predictor, scene, o + d * t, -d, 1, w * medium.albedo(), 1, rng, &mut |order, v| {
+            if order >= k { out.high += v } else { out.low += v }
+        });
     }
     out
 }

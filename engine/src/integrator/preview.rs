@@ -202,7 +202,9 @@ impl CameraLatticePredictor {
         if inner.answers_any_light_direction() || scene.sun.is_none() {
             return None;
         }
-        let lattice = Preview::lattice_of(scene, None, inner.clone(), camera, max_nodes);
+        // Only the fine lattice is read (at the camera's first vertices): no far one.
+        let lattice =
+            LearnedLattice { far: None, ..Preview::lattice_of(scene, None, inner.clone(), camera, max_nodes) };
         let name = format!("{} (camera lattice)", inner.name());
         Some(CameraLatticePredictor { lattice, inner, camera, name })
     }

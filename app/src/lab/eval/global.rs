@@ -199,16 +199,22 @@ fn predictor_kind(args: &EvalArgs) -> Result<PredictorKind> {
 /// The cache name of one prediction cell: everything its numbers depend on.
 fn cell_key(key: &str, k: u32, args: &EvalArgs, model_id: &str) -> String {
     let p = if args.auto_p { "auto".to_string() } else { args.p.to_string() };
-    // Prediction at k = 1 reads a lattice of the model's answers unless told not to.
-    let nodes = args.prediction_lattice.unwrap_or(crate::scene::DEFAULT_PREDICTION_LATTICE);
-    let lattice = if k == 1 && nodes > 0 { format!("_lat{nodes}") } else { String::new() };
-    let lattice = match (k, args.first_vertex.as_deref()) {
-        (1, Some("free-flight")) => lattice,
-        (1, Some("weighted")) => format!("{lattice}_wfv"),
-        (1, _) => format!("{lattice}_gfv"),
-        _ => lattice,
+    // At k = 1: the lattice of the model's answers (none at 0) and the first vertex.
+    let first = if k == 1 {
+        let lattice = match args.prediction_lattice.unwrap_or(crate::scene::DEFAULT_PREDICTION_LATTICE) {
+            0 => String::new(),
+            n => format!("_lat{n}"),
+        };
+        let vertex = match args.first_vertex.as_deref() {
+            Some("free-flight") => "",
+            Some("weighted") => "_wfv",
+            _ => "_gfv",
+        };
+        format!("{lattice}{vertex}")
+    } else {
+        String::new()
     };
-    format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}{lattice}_{model_id}", args.spp, args.spp_ref, args.field_nodes)
+    format!("{key}_k{k}_p{p}_spp{}_ref{}_nodes{}{first}_{model_id}", args.spp, args.spp_ref, args.field_nodes)
 }
 
 /// The sky of `nimbus eval --sky`: zenith and horizon radiance of a clear day (blue
@@ -427,34 +433,26 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
             f.render.mode = "predict".into();
             f.render.p = args.p;
             let t_pilot = Instant::now();
-            // The integrator of prediction mode: the model (at k = 1 through a lattice
-            // of its own, so the render's time includes filling it) and the first
-            // vertex's guide, whose field is built for this render (as for a new
-            // cloud) and whose seconds count with the render's.
-            let integrate = |f: &SceneFile| -> Result<(engine::Integrator, f64)> {
-                let integrator = f.integrator_with(Some(f.prediction_predictor(&scene, pred.clone())))?;
-                let t_guide = Instant::now();
-                let guide = f.first_vertex_guide(&scene, &mut Default::default(), engine::Cancel::NEVER)?;
-                let secs = t_guide.elapsed().as_secs_f64();
-                let integrator = match guide {
-                    Some(g) => integrator.with_first_vertex_guide(g),
-                    None => integrator,
-                };
-                Ok((integrator, secs))
+            // Prediction mode's integrator, built anew for the pilots and for the
+            // render (as for a new cloud): at k = 1 its lattice is filled, and its
+            // guide's field built, within the render's seconds.
+            let integrate = |f: &SceneFile| {
+                f.prediction_integrator(&scene, pred.clone(), &mut Default::default(), engine::Cancel::NEVER)
             };
             if args.auto_p {
-                let (pilot, _) = integrate(&f)?;
-                f.render.p = crate::progressive::auto_p(scene.clone(), &pilot, 8, &control)?.p;
+                f.render.p = crate::progressive::auto_p(scene.clone(), &integrate(&f)?, 8, &control)?.p;
             }
             let secs_pilot = if args.auto_p { t_pilot.elapsed().as_secs_f64() } else { 0.0 };
-            let (integrator, secs_guide) = integrate(&f)?;
+            let t_setup = Instant::now();
+            let integrator = integrate(&f)?;
+            let secs_setup = t_setup.elapsed().as_secs_f64();
             let t =
                 render_tracked(scene.clone(), integrator, args.spp, &control, Some((&reference, &mask)), false, |d| {
                     bar.set_position(kbase + d as u64)
                 })?;
             let full = Image::from_film(&t.film, Buffer::Full);
             let (b, rb, floor) = bias_in(&reference, &full, &mask);
-            let ttuv_pred = ttuv(&full.var, &mask, t.seconds + secs_guide);
+            let ttuv_pred = ttuv(&full.var, &mask, t.seconds + secs_setup);
             let rmse_floor = relative_rmse_less(&full.mean, &reference, &mask, Some(&full.var));
             let cell = CellResult {
                 scene: label.to_string(),
@@ -472,7 +470,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 ttuv_pred,
                 speedup: if ttuv_pred > 0.0 { meta.ttuv / ttuv_pred } else { f64::INFINITY },
                 secs_ref: meta.seconds,
-                secs_pred: t.seconds + secs_guide,
+                secs_pred: t.seconds + secs_setup,
                 secs_field,
                 secs_pilot,
                 preview_secs_pred: t.preview_secs,
