@@ -203,8 +203,7 @@ impl CameraLatticePredictor {
             return None;
         }
         // Only the fine lattice is read (at the camera's first vertices): no far one.
-        let lattice =
-            LearnedLattice { far: None, ..Preview::lattice_of(scene, None, inner.clone(), camera, max_nodes) };
+        let lattice = Preview::lattice_of(scene, None, inner.clone(), camera, max_nodes, false);
         let name = format!("{} (camera lattice)", inner.name());
         Some(CameraLatticePredictor { lattice, inner, camera, name })
     }
@@ -309,18 +308,20 @@ impl Preview {
         camera: Vec3,
         max_nodes: u32,
     ) -> LearnedLattice {
-        Self::lattice_of(scene, Some(sun), predictor, camera, max_nodes)
+        Self::lattice_of(scene, Some(sun), predictor, camera, max_nodes, true)
     }
 
     /// [`Preview::learned_lattice`] of a predictor's own quantity: `single` the sun
     /// field whose single scattering is taken off a predictor of total in-scattered
-    /// radiance, None to keep what the predictor answers.
+    /// radiance, None to keep what the predictor answers; `far` adds the coarse lattice
+    /// read beyond the camera-facing skin (a reader of the skin alone goes without).
     fn lattice_of(
         scene: &Scene,
         single: Option<&Arc<SunTransmittance>>,
         predictor: Arc<dyn InScatterPredictor>,
         camera: Vec3,
         max_nodes: u32,
+        far: bool,
     ) -> LearnedLattice {
         let medium = scene.medium.clone();
         let (n, spacing) = lattice_over(&medium, max_nodes);
@@ -357,9 +358,13 @@ impl Preview {
             return LearnedLattice::single(ScalarLattice::filled(n, origin, spacing, source(spacing)));
         }
         let near = ScalarLattice::lazy(n, origin, spacing, source(spacing));
-        let (nf, spacing_far) = lattice_over(&scene.medium, FAR_LATTICE_NODES);
-        LearnedLattice::two_tier(near, ScalarLattice::lazy(nf, origin, spacing_far, source(spacing_far)))
-            .holding(model_bytes)
+        let lattice = if far {
+            let (nf, spacing_far) = lattice_over(&scene.medium, FAR_LATTICE_NODES);
+            LearnedLattice::two_tier(near, ScalarLattice::lazy(nf, origin, spacing_far, source(spacing_far)))
+        } else {
+            LearnedLattice::single(near)
+        };
+        lattice.holding(model_bytes)
     }
 
     /// One sample of the radiance arriving at `o` from direction `-d`, split into the
