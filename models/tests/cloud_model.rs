@@ -140,7 +140,7 @@ struct Small {
 /// Trains `data` into `out`, stopped after 2 epochs; the run's error.
 fn train_stopped(data: &CloudTrainData, cfg: &CloudTrainConfig, out: &Path) -> models::nn::fit::TrainError {
     let stop = StopAfterEpochs::new(2);
-    train(data, None, cfg, out, false, "test", "test", &stop).err().expect("a stopped run is an error")
+    train(data.clone(), None, cfg, out, false, "test", "test", &stop).err().expect("a stopped run is an error")
 }
 
 /// `dir`/a.safetensors and `dir`/b.safetensors hold the same bytes.
@@ -163,7 +163,8 @@ fn small_training_set() -> Small {
 #[test]
 fn training_resumes_and_the_model_round_trips() {
     let Small { s, root, data, cfg, .. } = small_training_set();
-    let (full, report) = train(&data, None, &cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
+    let (full, report) =
+        train(data.clone(), None, &cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
     // The test split holds out whole clouds: 3 of 12.
     assert_eq!(report.test.clouds, 3);
     assert_eq!(report.test.points + report.train_points, 96);
@@ -171,7 +172,7 @@ fn training_resumes_and_the_model_round_trips() {
     // Stopped after 2 epochs, resumed: the same weights as the straight run.
     let e = train_stopped(&data, &cfg, &root.path().join("b"));
     assert!(e.to_string().contains("--resume"), "{e}");
-    train(&data, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
+    train(data.clone(), None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
     assert_same_weights(root.path(), "resumed training differs");
     // The fast evaluator against candle on the same weights, and the loaded model
     // against the one returned.
@@ -238,7 +239,7 @@ fn distillation_trains_on_the_teachers_mean() {
     let teacher = |seed: u64, name: &str| {
         let c =
             CloudTrainConfig { schedule: models::nn::fit::FitSchedule { seed, ..cfg.schedule.clone() }, ..cfg.clone() };
-        train(&data, None, &c, &root.path().join(name), false, "test", "test", &Quiet).unwrap().0
+        train(data.clone(), None, &c, &root.path().join(name), false, "test", "test", &Quiet).unwrap().0
     };
     let (t1, t2) = (teacher(1, "t1"), teacher(2, "t2"));
     let distilled = |threads: usize, teachers: &[&CloudModel], names: &[&str]| {
@@ -262,19 +263,19 @@ fn distillation_trains_on_the_teachers_mean() {
 
     // Trained on them, stopped and resumed with another teacher: refused; with the
     // same: the straight run's weights. The sidecar names the teachers.
-    let (_, report) = train(&d1, None, &cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
+    let (_, report) = train(d1.clone(), None, &cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
     assert!(report.refit.is_some() && report.test.bias.is_finite());
     train_stopped(&d1, &cfg, &root.path().join("b"));
     let other = distilled(2, &[&t1], &["t1"]);
-    let e = train(&other, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).err().unwrap();
+    let e = train(other.clone(), None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).err().unwrap();
     assert!(e.to_string().contains("other settings or data"), "{e}");
-    train(&d1, None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
+    train(d1.clone(), None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
     assert_same_weights(root.path(), "resumed distillation differs");
     let side: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(root.path().join("a.json")).unwrap()).unwrap();
     assert_eq!(side["training"]["teachers"], serde_json::json!(["t1", "t2"]));
     // Trained on the teachers' mean, the student differs from a run on the paths.
-    let (plain, _) = train(&data, None, &cfg, &root.path().join("c"), false, "test", "test", &Quiet).unwrap();
+    let (plain, _) = train(data.clone(), None, &cfg, &root.path().join("c"), false, "test", "test", &Quiet).unwrap();
     let student = CloudModel::load(&root.path().join("a.safetensors")).unwrap();
     let row = &data.features[..N_FEATURES];
     assert_ne!(

@@ -159,7 +159,7 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
     let command: Vec<String> = std::env::args().collect();
     let observer = BarObserver { bar, cancel };
     let (_, report) = models::cloud::train::train(
-        &data,
+        data,
         held_out.as_ref(),
         &cfg,
         &args.out,

@@ -420,6 +420,14 @@ pub struct CloudDataset {
 
 impl CloudDataset {
     pub fn load(dir: &Path) -> Result<CloudDataset, DatagenError> {
+        let manifest = Self::manifest_of(dir)?;
+        let (mut features, mut targets) = (vec![], vec![]);
+        Self::read_rows(dir, &manifest, &mut features, &mut targets)?;
+        Ok(CloudDataset { features, targets, manifest })
+    }
+
+    /// The manifest of the complete data set in `dir` (an incomplete one is refused).
+    pub fn manifest_of(dir: &Path) -> Result<CloudManifest, DatagenError> {
         let manifest = CloudManifest::load(dir)?;
         if !manifest.complete {
             return Err(DatagenError::File {
@@ -427,28 +435,46 @@ impl CloudDataset {
                 why: "the data set is not complete: finish generating it (run the same command again) or merge its shards".into(),
             });
         }
-        let read = |name: &str, cols: usize| -> Result<Vec<f32>, DatagenError> {
+        Ok(manifest)
+    }
+
+    /// Appends the rows of the data set in `dir` (whose manifest is `manifest`) to
+    /// `features` and `targets`, streamed from the files: several data sets load into
+    /// buffers reserved once for all of them, at the cost of their rows alone.
+    pub fn read_rows(
+        dir: &Path,
+        manifest: &CloudManifest,
+        features: &mut Vec<f32>,
+        targets: &mut Vec<f32>,
+    ) -> Result<(), DatagenError> {
+        let rows = manifest.counts.points as usize;
+        let read = |name: &str, cols: usize, out: &mut Vec<f32>| -> Result<(), DatagenError> {
             let path = dir.join(name);
-            let (shape, data) =
-                npy::read_f32(&path).map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
+            let start = out.len();
+            let shape = npy::read_f32_into(&path, out)
+                .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
             if shape.len() != 2 || shape[1] != cols {
+                out.truncate(start);
                 return Err(DatagenError::File { path, why: format!("shape {shape:?}, expected [N, {cols}]") });
             }
-            Ok(data)
+            Ok(())
         };
-        let (features, targets) = (read("features.npy", N_FEATURES)?, read("targets.npy", 5)?);
-        let rows = manifest.counts.points as usize;
-        if features.len() != rows * N_FEATURES || targets.len() != rows * 5 {
+        let (f0, t0) = (features.len(), targets.len());
+        read("features.npy", N_FEATURES, features)?;
+        if let Err(e) = read("targets.npy", 5, targets) {
+            features.truncate(f0);
+            return Err(e);
+        }
+        let (nf, nt) = ((features.len() - f0) / N_FEATURES, (targets.len() - t0) / 5);
+        if nf != rows || nt != rows {
+            features.truncate(f0);
+            targets.truncate(t0);
             return Err(DatagenError::File {
                 path: dir.to_owned(),
-                why: format!(
-                    "features.npy has {} rows and targets.npy {}, the manifest {rows}",
-                    features.len() / N_FEATURES,
-                    targets.len() / 5
-                ),
+                why: format!("features.npy has {nf} rows and targets.npy {nt}, the manifest {rows}"),
             });
         }
-        Ok(CloudDataset { features, targets, manifest })
+        Ok(())
     }
 
     pub fn len(&self) -> usize {

@@ -117,6 +117,7 @@ impl CloudTrainConfig {
 }
 
 /// Rows of one or more cloud data sets.
+#[derive(Clone)]
 pub struct CloudTrainData {
     pub features: Vec<f32>,
     /// The five stored targets per row.
@@ -139,23 +140,36 @@ pub struct Distilled {
 }
 
 impl CloudTrainData {
+    /// The rows of the data sets in `dirs`, in order, read into buffers of their
+    /// total size (no data set is held twice while loading).
     pub fn load(dirs: &[PathBuf]) -> Result<CloudTrainData, TrainError> {
         if dirs.is_empty() {
             return Err(TrainError::Data("no data set given".into()));
         }
-        let mut out =
-            CloudTrainData { features: vec![], targets: vec![], clouds: vec![], sources: vec![], distilled: None };
-        for (k, d) in dirs.iter().enumerate() {
-            let ds = CloudDataset::load(d).map_err(|e| TrainError::Data(e.to_string()))?;
-            if ds.manifest.settings.held_out {
+        let data = |e: crate::dataset::manifest::DatagenError| TrainError::Data(e.to_string());
+        let mut manifests = vec![];
+        for d in dirs {
+            let manifest = CloudDataset::manifest_of(d).map_err(data)?;
+            if manifest.settings.held_out {
                 return Err(TrainError::Data(format!(
                     "{} is a held-out data set: it tests the model and is never trained on (pass it as --held-out)",
                     d.display()
                 )));
             }
-            out.clouds.extend((0..ds.len()).map(|i| (k as u32, ds.cloud_of(i))));
-            out.features.extend_from_slice(&ds.features);
-            out.targets.extend_from_slice(&ds.targets);
+            manifests.push(manifest);
+        }
+        let rows: usize = manifests.iter().map(|m| m.counts.points as usize).sum();
+        let mut out = CloudTrainData {
+            features: Vec::with_capacity(rows * N_FEATURES),
+            targets: Vec::with_capacity(rows * 5),
+            clouds: Vec::with_capacity(rows),
+            sources: vec![],
+            distilled: None,
+        };
+        for (k, (d, manifest)) in dirs.iter().zip(&manifests).enumerate() {
+            CloudDataset::read_rows(d, manifest, &mut out.features, &mut out.targets).map_err(data)?;
+            let per_cloud = manifest.settings.points_per_cloud;
+            out.clouds.extend((0..manifest.counts.points).map(|i| (k as u32, i / per_cloud)));
             out.sources.push(d.display().to_string());
         }
         Ok(out)
@@ -299,7 +313,7 @@ pub struct CloudReport {
 /// the loss history and the checkpoint; returns the loaded model and the report.
 #[allow(clippy::too_many_arguments)]
 pub fn train(
-    data: &CloudTrainData,
+    mut data: CloudTrainData,
     held_out: Option<&CloudDataset>,
     cfg: &CloudTrainConfig,
     out: &Path,
@@ -366,21 +380,38 @@ pub fn train(
     let feature_mean: Vec<f32> = mean.iter().map(|m| (m / n) as f32).collect();
     let feature_std: Vec<f32> = mean.iter().zip(&sq).map(|(m, q)| std_of(*m, *q) as f32).collect();
     let (target_mean, target_std) = ((ym / n) as f32, std_of(ym, ysq) as f32);
-    let standardize = |rows: &[usize]| {
-        let mut x = Vec::with_capacity(rows.len() * N_FEATURES);
-        for &i in rows {
-            x.extend(data.row(i).iter().enumerate().map(|(k, v)| (v - feature_mean[k]) / feature_std[k]));
+    let standardize_row = |row: &mut [f32]| {
+        for (k, v) in row.iter_mut().enumerate() {
+            *v = (*v - feature_mean[k]) / feature_std[k];
         }
-        x
     };
+    // The test split, raw (for the bias report) and standardized, copied out; then the
+    // training rows are standardized in place, moved to the front and the rest dropped,
+    // so the features are held once (a 6 M-point set is 10.5 GB).
+    let f = N_FEATURES;
+    let test_raw: Vec<f32> = test_rows.iter().flat_map(|&i| data.row(i).iter().copied()).collect();
+    let mut x_test = test_raw.clone();
+    x_test.chunks_exact_mut(f).for_each(standardize_row);
+    let test_targets: Vec<f32> =
+        test_rows.iter().flat_map(|&i| data.targets[i * 5..i * 5 + 5].iter().copied()).collect();
+    let test_clouds: Vec<(u32, u64)> = test_rows.iter().map(|&i| data.clouds[i]).collect();
     // The loss compares 4 pi L_ms (the linear value the output stands for).
-    let targets = |rows: &[usize]| rows.iter().map(|&i| FOUR_PI * data.targets[i * 5 + col]).collect::<Vec<f32>>();
+    let y_test: Vec<f32> = test_rows.iter().map(|&i| FOUR_PI * data.targets[i * 5 + col]).collect();
+    let y_train: Vec<f32> = train_rows.iter().map(|&i| train_target(i)).collect();
+    let mut x_train = std::mem::take(&mut data.features);
+    for (j, &i) in train_rows.iter().enumerate() {
+        // Rows ascend, so row i >= j is never one already moved.
+        x_train.copy_within(i * f..(i + 1) * f, j * f);
+        standardize_row(&mut x_train[j * f..(j + 1) * f]);
+    }
+    x_train.truncate(train_rows.len() * f);
+    x_train.shrink_to_fit();
     let fit_data = FitData {
         n_f: N_FEATURES,
-        x_train: standardize(&train_rows),
-        y_train: train_rows.iter().map(|&i| train_target(i)).collect(),
-        x_test: standardize(&test_rows),
-        y_test: targets(&test_rows),
+        x_train,
+        y_train,
+        x_test,
+        y_test,
         loss: Loss::RelativeL2 { mean: target_mean, std: target_std, eps: cfg.eps, power: cfg.loss_power },
     };
     let paths = TrainPaths::new(out);
@@ -416,7 +447,7 @@ pub fn train(
     let model = CloudModel::new(sidecar.clone(), mlp);
     // The test split is judged on the stored means (the precise reference) whatever
     // the training column.
-    let test = bias_report(&model, &data.features, &data.targets, &data.clouds, &test_rows);
+    let test = bias_report(&model, &test_raw, &test_targets, &test_clouds, &(0..test_rows.len()).collect::<Vec<_>>());
     let held_out = held_out.map(|h| {
         let clouds: Vec<(u32, u64)> = (0..h.len()).map(|i| (0, h.cloud_of(i))).collect();
         let rows: Vec<usize> = (0..h.len()).filter(|&i| h.targets[i * 5].is_finite()).collect();

@@ -117,8 +117,9 @@ pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), NpyEr
     write_bytes_atomically(path, &npy_bytes_f32(shape, data)).map_err(NpyError::Write)
 }
 
-/// Parses a float32 `.npy` file: its shape and data.
-pub fn parse_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>), String> {
+/// A float32 `.npy` header: the array's shape, where its data starts and how many
+/// values it holds. `bytes` is the file's start (at least through the header).
+fn parse_header(bytes: &[u8]) -> Result<(Vec<usize>, usize, usize), String> {
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err("missing the \\x93NUMPY magic".into());
     }
@@ -149,18 +150,76 @@ pub fn parse_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>), String> {
         .map(|s| s.parse::<usize>().map_err(|_| format!("bad shape entry {s:?}")))
         .collect::<Result<_, _>>()?;
     let count = shape.iter().try_fold(1usize, |a, &b| a.checked_mul(b)).ok_or("shape overflows")?;
+    Ok((shape, data_start, count))
+}
+
+/// The error for a payload of `have` bytes where `shape` needs `count` values.
+fn payload_mismatch(shape: &[usize], count: usize, have: u64) -> String {
+    format!("shape {shape:?} needs {} bytes of data, the file has {have}", count as u64 * 4)
+}
+
+/// Parses a float32 `.npy` file: its shape and data.
+pub fn parse_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>), String> {
+    let (shape, data_start, count) = parse_header(bytes)?;
     let payload = &bytes[data_start..];
     if count.checked_mul(4) != Some(payload.len()) {
-        return Err(format!("shape {shape:?} needs {} bytes of data, the file has {}", count * 4, payload.len()));
+        return Err(payload_mismatch(&shape, count, payload.len() as u64));
     }
     let data = payload.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();
     Ok((shape, data))
 }
 
+/// Reads a float32 `.npy` file onto the end of `out` and returns its shape. The file
+/// is streamed in blocks, so reading costs the array's own memory and no copy of the
+/// file: data sets of several gigabytes load into one buffer reserved for all of them.
+/// On an error `out` is left as it was.
+pub fn read_f32_into(path: &Path, out: &mut Vec<f32>) -> Result<Vec<usize>, NpyError> {
+    use std::io::Read;
+    let io = |error| NpyError::Io { path: path.to_owned(), error };
+    let format = |why| NpyError::Format { path: path.to_owned(), why };
+    let mut file = std::fs::File::open(path).map_err(io)?;
+    let size = file.metadata().map_err(io)?.len();
+    // The header: its length is in the first 12 bytes (version 1 uses 10).
+    let mut head = vec![0u8; 12.min(size as usize)];
+    file.read_exact(&mut head).map_err(io)?;
+    let header_len = match head.get(6) {
+        Some(1) if head.len() >= 10 => 10 + u16::from_le_bytes([head[8], head[9]]) as usize,
+        Some(2 | 3) if head.len() >= 12 => 12 + u32::from_le_bytes(head[8..12].try_into().unwrap()) as usize,
+        _ => head.len(),
+    };
+    if header_len > head.len() {
+        let have = head.len();
+        head.resize(header_len.min(size as usize), 0);
+        file.read_exact(&mut head[have..]).map_err(io)?;
+    } else {
+        head.truncate(header_len);
+    }
+    let (shape, data_start, count) = parse_header(&head).map_err(format)?;
+    let payload = size - data_start as u64;
+    if (count as u64).checked_mul(4) != Some(payload) {
+        return Err(format(payload_mismatch(&shape, count, payload)));
+    }
+    let start = out.len();
+    out.reserve(count);
+    let mut block = vec![0u8; 1 << 20];
+    let mut left = count;
+    while left > 0 {
+        let n = left.min(block.len() / 4);
+        if let Err(e) = file.read_exact(&mut block[..4 * n]) {
+            out.truncate(start);
+            return Err(io(e));
+        }
+        out.extend(block[..4 * n].chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())));
+        left -= n;
+    }
+    Ok(shape)
+}
+
 /// Reads a float32 `.npy` file.
 pub fn read_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>), NpyError> {
-    let bytes = std::fs::read(path).map_err(|error| NpyError::Io { path: path.to_owned(), error })?;
-    parse_f32(&bytes).map_err(|why| NpyError::Format { path: path.to_owned(), why })
+    let mut data = vec![];
+    let shape = read_f32_into(path, &mut data)?;
+    Ok((shape, data))
 }
 
 #[cfg(test)]
@@ -174,6 +233,41 @@ mod tests {
         let bytes = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/fuzz_npy_shape.npy")).unwrap();
         let e = parse_f32(&bytes).unwrap_err();
         assert!(e.contains("tuple"), "{e}");
+    }
+
+    /// Streaming a file onto a buffer gives what parsing its bytes gives, appended
+    /// after what the buffer held, across block boundaries (2^18 values per block);
+    /// a file whose payload is short or long, or whose header is cut, is refused
+    /// with the buffer unchanged.
+    #[test]
+    fn read_into_appends_what_parse_reads() {
+        let dir = tempfile::tempdir().unwrap();
+        let n = (1 << 18) + 1000;
+        let data: Vec<f32> = (0..n).map(|i| (i as f32).sin() * 1e3 + i as f32).collect();
+        let bytes = npy_bytes_f32(&[n / 4, 4], &data);
+        let path = dir.path().join("a.npy");
+        std::fs::write(&path, &bytes).unwrap();
+        let mut out = vec![7.0f32, -1.0];
+        let shape = read_f32_into(&path, &mut out).unwrap();
+        assert_eq!(shape, vec![n / 4, 4]);
+        let (parsed_shape, parsed) = parse_f32(&bytes).unwrap();
+        assert_eq!(parsed_shape, shape);
+        assert_eq!(&out[..2], &[7.0, -1.0]);
+        assert!(out[2..].iter().zip(&parsed).all(|(a, b)| a.to_bits() == b.to_bits()) && out.len() == n + 2);
+        // A version 2.0 header (4-byte length) reads the same.
+        let header_len = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+        let mut v2 = b"\x93NUMPY\x02\x00".to_vec();
+        v2.extend_from_slice(&(header_len as u32).to_le_bytes());
+        v2.extend_from_slice(&bytes[10..]);
+        std::fs::write(&path, &v2).unwrap();
+        assert_eq!(read_f32(&path).unwrap().1.len(), n);
+        for bad in [&bytes[..bytes.len() - 4], &[&bytes[..], &[0u8; 4][..]].concat()[..], &bytes[..40], &bytes[..5]] {
+            std::fs::write(&path, bad).unwrap();
+            let before = out.clone();
+            let e = read_f32_into(&path, &mut out).unwrap_err();
+            assert!(matches!(e, NpyError::Format { .. }), "{e}");
+            assert_eq!(out.len(), before.len());
+        }
     }
 
     /// A temporary left by a killed process (a pid that does not run) is removed by
