@@ -324,7 +324,7 @@ fn is_learned(s: &str) -> bool {
 }
 
 fn is_guided(s: &str) -> bool {
-    s == "guided"
+    FirstVertexChoice::parse(s) == Some(FirstVertexChoice::Guided)
 }
 
 fn is_default_prediction_lattice(n: &u32) -> bool {
@@ -354,6 +354,43 @@ pub const DEFAULT_PREVIEW_NODES: u32 = 96;
 
 /// Nodes per axis, at most, of prediction's lattice at bounce 1, by default.
 pub const DEFAULT_PREDICTION_LATTICE: u32 = 128;
+
+/// Where prediction at k = 1 places its vertex on the camera ray (`render.first_vertex`,
+/// `--first-vertex`): the one place its words are spelled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FirstVertexChoice {
+    /// One of ratio tracking's tentative collisions, drawn by its weight times the
+    /// sun's transmittance there, plus a floor (the default).
+    Guided,
+    /// A tentative collision drawn by its weight alone.
+    Weighted,
+    /// The first real collision, as path tracing.
+    FreeFlight,
+}
+
+impl FirstVertexChoice {
+    /// The words of the scene file and the CLI, in the order of [`Self::ALL`].
+    pub const NAMES: [&'static str; 3] = ["guided", "weighted", "free-flight"];
+    pub const ALL: [FirstVertexChoice; 3] =
+        [FirstVertexChoice::Guided, FirstVertexChoice::Weighted, FirstVertexChoice::FreeFlight];
+
+    pub fn parse(name: &str) -> Option<FirstVertexChoice> {
+        Self::NAMES.iter().position(|n| *n == name).map(|i| Self::ALL[i])
+    }
+
+    pub fn name(self) -> &'static str {
+        Self::NAMES[Self::ALL.iter().position(|c| *c == self).expect("listed")]
+    }
+
+    /// The engine's vertex sampling: guided is weighted sampling with the sun's guide
+    /// added ([`engine::integrator::Integrator::with_first_vertex_guide`]).
+    pub fn engine(self) -> engine::FirstVertex {
+        match self {
+            FirstVertexChoice::FreeFlight => engine::FirstVertex::FreeFlight,
+            FirstVertexChoice::Guided | FirstVertexChoice::Weighted => engine::FirstVertex::Weighted,
+        }
+    }
+}
 
 fn is_default_extension_samples(n: &u32) -> bool {
     *n == engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES
@@ -386,7 +423,7 @@ impl Default for RenderDesc {
             preview: "learned".into(),
             preview_nodes: DEFAULT_PREVIEW_NODES,
             prediction_lattice: DEFAULT_PREDICTION_LATTICE,
-            first_vertex: "guided".into(),
+            first_vertex: FirstVertexChoice::Guided.name().into(),
             octaves: 3,
             octave_a: 0.5,
             octave_b: 0.5,
@@ -593,9 +630,10 @@ impl SceneFile {
                 self.render.preview
             )));
         }
-        if !["guided", "weighted", "free-flight"].contains(&self.render.first_vertex.as_str()) {
+        if FirstVertexChoice::parse(&self.render.first_vertex).is_none() {
+            let [a, b, c] = FirstVertexChoice::NAMES;
             return Err(SceneError::Invalid(format!(
-                "render.first_vertex must be \"guided\", \"weighted\" or \"free-flight\", got {:?}",
+                "render.first_vertex must be \"{a}\", \"{b}\" or \"{c}\", got {:?}",
                 self.render.first_vertex
             )));
         }
@@ -740,17 +778,19 @@ impl SceneFile {
         Ok(Scene { medium, sun: Some(self.build_sun()?), sky: self.build_sky()?, camera: self.build_camera()? })
     }
 
+    /// `render.first_vertex` (the default where a file that skipped validation
+    /// names none known).
+    pub fn first_vertex(&self) -> FirstVertexChoice {
+        FirstVertexChoice::parse(&self.render.first_vertex).unwrap_or(FirstVertexChoice::Guided)
+    }
+
     pub fn settings(&self) -> RenderSettings {
         RenderSettings {
             seed: self.seed,
             k: self.k,
             max_order: self.max_order,
             mode: if self.render.mode == "predict" { Mode::Predict { p: self.render.p } } else { Mode::Reference },
-            first_vertex: if self.render.first_vertex == "free-flight" {
-                engine::FirstVertex::FreeFlight
-            } else {
-                engine::FirstVertex::Weighted
-            },
+            first_vertex: self.first_vertex().engine(),
         }
     }
 
@@ -883,7 +923,7 @@ impl SceneFile {
         };
         let integrator = self.integrator_with(Some(predictor))?;
         match scene.sun.as_ref() {
-            Some(sun) if first && self.render.first_vertex == "guided" => {
+            Some(sun) if first && self.first_vertex() == FirstVertexChoice::Guided => {
                 let field = self.sun_field(scene, sun, SunTransmittance::DEFAULT_MAX_NODES, cache, cancel)?;
                 Ok(integrator.with_first_vertex_guide(field))
             }
@@ -1230,6 +1270,9 @@ mod tests {
         free.render.first_vertex = "first".into();
         let e = free.validate().unwrap_err().to_string();
         assert!(e.contains("render.first_vertex"), "{e}");
+        for c in FirstVertexChoice::ALL {
+            assert_eq!(FirstVertexChoice::parse(c.name()), Some(c));
+        }
     }
 
     /// BDPT prediction loads the shipped point-to-point model without any file, splits

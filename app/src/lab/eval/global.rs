@@ -116,7 +116,7 @@ pub struct EvalArgs {
     pub prediction_lattice: Option<u32>,
     /// Where prediction at k = 1 places its vertex: guided (default), weighted or
     /// free-flight (render.first_vertex).
-    #[arg(long, value_parser = ["guided", "weighted", "free-flight"])]
+    #[arg(long, value_parser = crate::scene::FirstVertexChoice::NAMES)]
     pub first_vertex: Option<String>,
     /// Light every scene by the evaluation sky as well as the sun ([`EVAL_SKY`]: a
     /// clear-day gradient over a ground of albedo 0.3), for the bias of prediction
@@ -205,10 +205,11 @@ fn cell_key(key: &str, k: u32, args: &EvalArgs, model_id: &str) -> String {
             0 => String::new(),
             n => format!("_lat{n}"),
         };
-        let vertex = match args.first_vertex.as_deref() {
-            Some("free-flight") => "",
-            Some("weighted") => "_wfv",
-            _ => "_gfv",
+        use crate::scene::FirstVertexChoice as V;
+        let vertex = match args.first_vertex.as_deref().and_then(V::parse).unwrap_or(V::Guided) {
+            V::FreeFlight => "",
+            V::Weighted => "_wfv",
+            V::Guided => "_gfv",
         };
         format!("{lattice}{vertex}")
     } else {
