@@ -283,3 +283,41 @@ fn distillation_trains_on_the_teachers_mean() {
         plain.predict_features(row, &mut plain.mlp.scratch())
     );
 }
+
+/// Two data sets load as one, in order, the second's clouds told apart from the
+/// first's; a manifest counting more rows than its files hold is refused before any
+/// buffer is reserved for them, and a file cut short is refused after reading.
+#[test]
+fn data_sets_load_in_order_and_damaged_ones_are_refused() {
+    let small = small_training_set();
+    let twice = CloudTrainData::load(&[small.data_dir.clone(), small.data_dir.clone()]).unwrap();
+    let n = small.data.len();
+    assert_eq!(twice.len(), 2 * n);
+    assert_eq!(&twice.features[..small.data.features.len()], &small.data.features[..]);
+    assert_eq!(&twice.features[small.data.features.len()..], &small.data.features[..]);
+    assert_eq!(&twice.targets[5 * n..], &small.data.targets[..]);
+    assert_eq!(twice.clouds[n], (1, 0));
+    assert_eq!(twice.clouds[n - 1], (0, small.data.clouds[n - 1].1));
+
+    let copy = |name: &str| {
+        let d = small.root.path().join(name);
+        std::fs::create_dir_all(&d).unwrap();
+        for f in ["manifest.json", "features.npy", "targets.npy"] {
+            std::fs::copy(small.data_dir.join(f), d.join(f)).unwrap();
+        }
+        d
+    };
+    let huge = copy("huge");
+    let path = huge.join("manifest.json");
+    let mut m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    m["counts"]["points"] = serde_json::json!(1u64 << 50);
+    std::fs::write(&path, serde_json::to_string(&m).unwrap()).unwrap();
+    let e = CloudTrainData::load(&[huge]).err().unwrap().to_string();
+    assert!(e.contains("rows") && e.contains("features.npy"), "{e}");
+
+    let cut = copy("cut");
+    let bytes = std::fs::read(cut.join("targets.npy")).unwrap();
+    std::fs::write(cut.join("targets.npy"), &bytes[..bytes.len() - 20]).unwrap();
+    let e = CloudTrainData::load(&[small.data_dir.clone(), cut]).err().unwrap().to_string();
+    assert!(e.contains("targets.npy"), "{e}");
+}

@@ -438,6 +438,26 @@ impl CloudDataset {
         Ok(manifest)
     }
 
+    /// The data set's rows as its manifest counts them, checked against the sizes of
+    /// its files, so that a damaged manifest cannot ask for a buffer its files do not
+    /// fill.
+    pub fn rows_of(dir: &Path, manifest: &CloudManifest) -> Result<usize, DatagenError> {
+        let rows = manifest.counts.points as usize;
+        for (name, cols) in [("features.npy", N_FEATURES), ("targets.npy", 5)] {
+            let path = dir.join(name);
+            let size = std::fs::metadata(&path)
+                .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?
+                .len();
+            if rows.checked_mul(4 * cols).is_none_or(|bytes| bytes as u64 > size) {
+                return Err(DatagenError::File {
+                    path,
+                    why: format!("the manifest counts {rows} rows, more than the file's {size} bytes hold"),
+                });
+            }
+        }
+        Ok(rows)
+    }
+
     /// Appends the rows of the data set in `dir` (whose manifest is `manifest`) to
     /// `features` and `targets`, streamed from the files: several data sets load into
     /// buffers reserved once for all of them, at the cost of their rows alone.

@@ -158,7 +158,10 @@ impl CloudTrainData {
             }
             manifests.push(manifest);
         }
-        let rows: usize = manifests.iter().map(|m| m.counts.points as usize).sum();
+        let mut rows = 0usize;
+        for (d, m) in dirs.iter().zip(&manifests) {
+            rows += CloudDataset::rows_of(d, m).map_err(data)?;
+        }
         let mut out = CloudTrainData {
             features: Vec::with_capacity(rows * N_FEATURES),
             targets: Vec::with_capacity(rows * 5),
