@@ -314,6 +314,7 @@ pub struct CloudReport {
 /// Trains on `data` (the test split by cloud), reports on the test clouds and on
 /// `held_out` (a data set made with `--held-out`), writes OUT.safetensors, OUT.json,
 /// the loss history and the checkpoint; returns the loaded model and the report.
+/// `data` is consumed: its feature buffer becomes the standardized training matrix.
 #[allow(clippy::too_many_arguments)]
 pub fn train(
     mut data: CloudTrainData,
