@@ -369,17 +369,21 @@ pub enum FirstVertexChoice {
 }
 
 impl FirstVertexChoice {
-    /// The words of the scene file and the CLI, in the order of [`Self::ALL`].
-    pub const NAMES: [&'static str; 3] = ["guided", "weighted", "free-flight"];
     pub const ALL: [FirstVertexChoice; 3] =
         [FirstVertexChoice::Guided, FirstVertexChoice::Weighted, FirstVertexChoice::FreeFlight];
+    /// The words of the scene file and the CLI, in the order of [`Self::ALL`].
+    pub const NAMES: [&'static str; 3] = [Self::ALL[0].name(), Self::ALL[1].name(), Self::ALL[2].name()];
 
-    pub fn parse(name: &str) -> Option<FirstVertexChoice> {
-        Self::NAMES.iter().position(|n| *n == name).map(|i| Self::ALL[i])
+    pub const fn name(self) -> &'static str {
+        match self {
+            FirstVertexChoice::Guided => "guided",
+            FirstVertexChoice::Weighted => "weighted",
+            FirstVertexChoice::FreeFlight => "free-flight",
+        }
     }
 
-    pub fn name(self) -> &'static str {
-        Self::NAMES[Self::ALL.iter().position(|c| *c == self).expect("listed")]
+    pub fn parse(name: &str) -> Option<FirstVertexChoice> {
+        Self::ALL.into_iter().find(|c| c.name() == name)
     }
 
     /// The engine's vertex sampling: guided is weighted sampling with the sun's guide

@@ -120,6 +120,11 @@ impl Default for CloudSpec {
 }
 
 impl CloudSpec {
+    /// The cloud (chunk) of point `i`.
+    pub fn cloud_of(&self, i: u64) -> u64 {
+        i / self.points_per_cloud
+    }
+
     /// Checks every setting; the error names the command-line flag.
     pub fn validate(&self) -> Result<(), DatagenError> {
         if self.points == 0 {
@@ -468,33 +473,29 @@ impl CloudDataset {
         targets: &mut Vec<f32>,
     ) -> Result<(), DatagenError> {
         let rows = manifest.counts.points as usize;
-        let read = |name: &str, cols: usize, out: &mut Vec<f32>| -> Result<(), DatagenError> {
-            let path = dir.join(name);
-            let start = out.len();
-            let shape = npy::read_f32_into(&path, out)
-                .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
-            if shape.len() != 2 || shape[1] != cols {
-                out.truncate(start);
-                return Err(DatagenError::File { path, why: format!("shape {shape:?}, expected [N, {cols}]") });
+        let (f0, t0) = (features.len(), targets.len());
+        let mut read = || -> Result<(), DatagenError> {
+            for (name, cols, out) in [("features.npy", N_FEATURES, &mut *features), ("targets.npy", 5, &mut *targets)] {
+                let path = dir.join(name);
+                let start = out.len();
+                let shape = npy::read_f32_into(&path, out)
+                    .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?;
+                if shape.len() != 2 || shape[1] != cols || shape[0] != rows {
+                    return Err(DatagenError::File {
+                        path,
+                        why: format!("shape {shape:?}, expected [{rows}, {cols}] (the manifest's {rows} rows)"),
+                    });
+                }
+                debug_assert_eq!(out.len() - start, rows * cols);
             }
             Ok(())
         };
-        let (f0, t0) = (features.len(), targets.len());
-        read("features.npy", N_FEATURES, features)?;
-        if let Err(e) = read("targets.npy", 5, targets) {
-            features.truncate(f0);
-            return Err(e);
-        }
-        let (nf, nt) = ((features.len() - f0) / N_FEATURES, (targets.len() - t0) / 5);
-        if nf != rows || nt != rows {
+        let result = read();
+        if result.is_err() {
             features.truncate(f0);
             targets.truncate(t0);
-            return Err(DatagenError::File {
-                path: dir.to_owned(),
-                why: format!("features.npy has {nf} rows and targets.npy {nt}, the manifest {rows}"),
-            });
         }
-        Ok(())
+        result
     }
 
     pub fn len(&self) -> usize {
@@ -507,7 +508,7 @@ impl CloudDataset {
 
     /// The cloud (chunk) of row `i`.
     pub fn cloud_of(&self, i: usize) -> u64 {
-        i as u64 / self.manifest.settings.points_per_cloud
+        self.manifest.settings.cloud_of(i as u64)
     }
 }
 

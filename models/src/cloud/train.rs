@@ -171,8 +171,7 @@ impl CloudTrainData {
         };
         for (k, (d, manifest)) in dirs.iter().zip(&manifests).enumerate() {
             CloudDataset::read_rows(d, manifest, &mut out.features, &mut out.targets).map_err(data)?;
-            let per_cloud = manifest.settings.points_per_cloud;
-            out.clouds.extend((0..manifest.counts.points).map(|i| (k as u32, i / per_cloud)));
+            out.clouds.extend((0..manifest.counts.points).map(|i| (k as u32, manifest.settings.cloud_of(i))));
             out.sources.push(d.display().to_string());
         }
         Ok(out)

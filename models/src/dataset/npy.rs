@@ -119,17 +119,25 @@ pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), NpyEr
 
 /// A float32 `.npy` header: the array's shape, where its data starts and how many
 /// values it holds. `bytes` is the file's start (at least through the header).
-fn parse_header(bytes: &[u8]) -> Result<(Vec<usize>, usize, usize), String> {
-    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+/// Where a `.npy` file's header text starts and where it ends (the data's start),
+/// from the file's first 12 bytes (version 1.0 needs 10).
+fn header_span(prefix: &[u8]) -> Result<(usize, usize), String> {
+    if prefix.len() < 10 || &prefix[..6] != b"\x93NUMPY" {
         return Err("missing the \\x93NUMPY magic".into());
     }
-    let (header_start, header_len): (usize, usize) = match bytes[6] {
-        1 => (10, u16::from_le_bytes([bytes[8], bytes[9]]) as usize),
-        2 | 3 if bytes.len() >= 12 => (12, u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize),
+    let (header_start, header_len): (usize, usize) = match prefix[6] {
+        1 => (10, u16::from_le_bytes([prefix[8], prefix[9]]) as usize),
+        2 | 3 if prefix.len() >= 12 => (12, u32::from_le_bytes(prefix[8..12].try_into().unwrap()) as usize),
         v => return Err(format!("format version {v} is not supported")),
     };
-    let data_start =
-        header_start.checked_add(header_len).filter(|&e| e <= bytes.len()).ok_or("header runs past the end")?;
+    Ok((header_start, header_start + header_len))
+}
+
+fn parse_header(bytes: &[u8]) -> Result<(Vec<usize>, usize, usize), String> {
+    let (header_start, data_start) = header_span(bytes)?;
+    if data_start > bytes.len() {
+        return Err("header runs past the end".into());
+    }
     let header = std::str::from_utf8(&bytes[header_start..data_start]).map_err(|_| "header is not text")?;
     let field = |key: &str| -> Result<&str, String> {
         let at = header.find(&format!("'{key}'")).ok_or(format!("header has no '{key}'"))?;
@@ -174,31 +182,27 @@ pub fn parse_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>), String> {
 /// file: data sets of several gigabytes load into one buffer reserved for all of them.
 /// On an error `out` is left as it was.
 pub fn read_f32_into(path: &Path, out: &mut Vec<f32>) -> Result<Vec<usize>, NpyError> {
-    use std::io::Read;
+    use std::io::{Read, Seek};
     let io = |error| NpyError::Io { path: path.to_owned(), error };
     let format = |why| NpyError::Format { path: path.to_owned(), why };
     let mut file = std::fs::File::open(path).map_err(io)?;
     let size = file.metadata().map_err(io)?.len();
-    // The header: its length is in the first 12 bytes (version 1 uses 10).
+    // The header: its length is in the first 12 bytes.
     let mut head = vec![0u8; 12.min(size as usize)];
     file.read_exact(&mut head).map_err(io)?;
-    let header_len = match head.get(6) {
-        Some(1) if head.len() >= 10 => 10 + u16::from_le_bytes([head[8], head[9]]) as usize,
-        Some(2 | 3) if head.len() >= 12 => 12 + u32::from_le_bytes(head[8..12].try_into().unwrap()) as usize,
-        _ => head.len(),
-    };
-    if header_len > head.len() {
-        let have = head.len();
-        head.resize(header_len.min(size as usize), 0);
+    let (_, header_end) = header_span(&head).map_err(format)?;
+    let have = head.len();
+    head.resize(header_end.min(size as usize), 0);
+    if head.len() > have {
         file.read_exact(&mut head[have..]).map_err(io)?;
-    } else {
-        head.truncate(header_len);
     }
     let (shape, data_start, count) = parse_header(&head).map_err(format)?;
     let payload = size - data_start as u64;
     if (count as u64).checked_mul(4) != Some(payload) {
         return Err(format(payload_mismatch(&shape, count, payload)));
     }
+    // (A header shorter than the 12 bytes read leaves the file past the data's start.)
+    file.seek(std::io::SeekFrom::Start(data_start as u64)).map_err(io)?;
     let start = out.len();
     out.reserve(count);
     let mut block = vec![0u8; 1 << 20];
