@@ -227,6 +227,38 @@ fn training_resumes_and_the_model_round_trips() {
     }
 }
 
+/// A network of the stored features alone (the models before the derived coupling)
+/// reads the first STORED_FEATURES values of the vector and loads as it was saved; the
+/// coupling's network reads them all; other lengths are refused.
+#[test]
+fn models_read_the_stored_features_or_all() {
+    use models::cloud::features::STORED_FEATURES;
+    use models::cloud::train::DerivedInputs;
+    let Small { root, data, cfg, .. } = small_training_set();
+    let plain = CloudTrainConfig { derived: DerivedInputs::None, ..cfg.clone() };
+    let (model, _) = train(data.clone(), None, &plain, &root.path().join("p"), false, "test", "test", &Quiet).unwrap();
+    assert_eq!(model.inputs(), STORED_FEATURES);
+    assert_eq!(model.sidecar.feature_names.len(), STORED_FEATURES);
+    let (coupled, _) = train(data.clone(), None, &cfg, &root.path().join("c"), false, "test", "test", &Quiet).unwrap();
+    assert_eq!(coupled.inputs(), N_FEATURES);
+    // The stored-only network ignores the derived values: changing them changes nothing.
+    let mut s = model.mlp.scratch();
+    for row in data.features.chunks_exact(N_FEATURES).take(10) {
+        let mut other = row.to_vec();
+        other[STORED_FEATURES..].iter_mut().for_each(|v| *v += 1.0);
+        assert_eq!(model.predict_features(row, &mut s), model.predict_features(&other, &mut s));
+    }
+    // A sidecar naming a length between the two is refused.
+    let text = std::fs::read_to_string(root.path().join("p.json")).unwrap();
+    let mut side: serde_json::Value = serde_json::from_str(&text).unwrap();
+    for key in ["feature_names", "feature_mean", "feature_std"] {
+        side[key].as_array_mut().unwrap().truncate(STORED_FEATURES - 1);
+    }
+    let bytes = std::fs::read(root.path().join("p.safetensors")).unwrap();
+    let err = CloudModel::from_bytes(&bytes, &side.to_string(), Path::new("p.safetensors")).unwrap_err();
+    assert!(err.to_string().contains("features"), "{err}");
+}
+
 /// Distillation: the training targets are exactly 4 pi times the mean of the teachers'
 /// predictions at each row, the same for any thread count; the path-traced targets
 /// stay for the reports; the teachers are part of the run's identity (a resume with

@@ -80,6 +80,11 @@ pub struct TrainCloudArgs {
     /// Adam's steps cut the heavy tails of noisy targets.
     #[arg(long, default_value_t = 10)]
     pub refit_output: usize,
+    /// Derived features the network reads beside the stored ones (computed from them on
+    /// loading): coupling (each phase term times the sun's transmittance at the point,
+    /// at three attenuations) or none.
+    #[arg(long, default_value = "coupling")]
+    pub derived: String,
     /// Continue from PREFIX.checkpoint/ (same settings and data).
     #[arg(long)]
     pub resume: bool,
@@ -88,7 +93,7 @@ pub struct TrainCloudArgs {
 }
 
 fn train_cloud(args: TrainCloudArgs) -> Result<()> {
-    use models::cloud::train::{BiasReport, CloudTrainConfig, CloudTrainData, TargetColumn};
+    use models::cloud::train::{BiasReport, CloudTrainConfig, CloudTrainData, DerivedInputs, TargetColumn};
     let cfg = CloudTrainConfig {
         schedule: models::nn::fit::FitSchedule {
             hidden: args.hidden.clone(),
@@ -109,6 +114,9 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
         max_points: args.max_points,
         refit_output: args.refit_output,
         loss_power: args.loss_power,
+        derived: DerivedInputs::parse(&args.derived).with_context(|| {
+            format!("--derived {:?}: choose one of {}", args.derived, DerivedInputs::NAMES.join(", "))
+        })?,
     };
     cfg.validate()?;
     let threads = init_threads(args.run.threads)?;

@@ -16,7 +16,7 @@
 //! first path's estimate alone (an unbiased one-path target, for the comparison of
 //! precise and cheap targets), and the vertex index k of the query.
 
-use super::features::{CloudField, N_FEATURES};
+use super::features::{CloudField, N_FEATURES, STORED_FEATURES, expand_stored_rows};
 use crate::dataset::chunks;
 use crate::dataset::manifest::{DataSpec, DatagenError, Manifest, Shard, check_range, setting};
 use crate::dataset::npy;
@@ -349,6 +349,8 @@ pub fn generate_point(spec: &CloudSpec, case: &Case, index: u64) -> (Vec<f32>, u
     let mut row = vec![0.0f32; N_FEATURES];
     let m = &case.scene.medium;
     case.field.features(m.albedo(), m.phase().mean_cosine(), x, wo, &mut row);
+    // The derived features are recomputed on loading ([`CloudDataset::read_rows`]).
+    row.truncate(STORED_FEATURES);
     row.extend_from_slice(&[mean as f32, std_error as f32, n as f32, first as f32, vertex as f32]);
     (row, spec.samples)
 }
@@ -372,7 +374,7 @@ impl DataSpec for CloudSpec {
         Self::validate(self)
     }
     fn header(&self) -> CloudHeader {
-        CloudHeader { feature_names: super::features::feature_names() }
+        CloudHeader { feature_names: super::features::stored_feature_names() }
     }
     fn points(&self) -> u64 {
         self.points
@@ -384,7 +386,7 @@ impl DataSpec for CloudSpec {
         1
     }
     fn n_features(&self) -> usize {
-        N_FEATURES
+        STORED_FEATURES
     }
     fn merged_path_samples(_: &[Manifest<Self>], targets: &[f32]) -> u64 {
         targets.chunks_exact(5).map(|t| t[2] as u64).sum()
@@ -417,7 +419,7 @@ pub fn generate(
 /// A data set loaded for training: rows, targets and which cloud each row comes from.
 pub struct CloudDataset {
     pub manifest: CloudManifest,
-    /// Row-major [n, N_FEATURES].
+    /// Row-major [n, N_FEATURES]: the stored features and the derived ones.
     pub features: Vec<f32>,
     /// Row-major [n, 5] (TARGET_COLUMNS).
     pub targets: Vec<f32>,
@@ -448,7 +450,7 @@ impl CloudDataset {
     /// fill.
     pub fn rows_of(dir: &Path, manifest: &CloudManifest) -> Result<usize, DatagenError> {
         let rows = manifest.counts.points as usize;
-        for (name, cols) in [("features.npy", N_FEATURES), ("targets.npy", 5)] {
+        for (name, cols) in [("features.npy", STORED_FEATURES), ("targets.npy", 5)] {
             let path = dir.join(name);
             let size = std::fs::metadata(&path)
                 .map_err(|e| DatagenError::File { path: path.clone(), why: e.to_string() })?
@@ -464,8 +466,9 @@ impl CloudDataset {
     }
 
     /// Appends the rows of the data set in `dir` (whose manifest is `manifest`) to
-    /// `features` and `targets`, streamed from the files: several data sets load into
-    /// buffers reserved once for all of them, at the cost of their rows alone.
+    /// `features` (rows of [`N_FEATURES`]: the stored ones with the derived ones
+    /// appended in place) and `targets`, streamed from the files: several data sets load
+    /// into buffers reserved once for all of them, at the cost of their rows alone.
     pub fn read_rows(
         dir: &Path,
         manifest: &CloudManifest,
@@ -475,7 +478,9 @@ impl CloudDataset {
         let rows = manifest.counts.points as usize;
         let (f0, t0) = (features.len(), targets.len());
         let mut read = || -> Result<(), DatagenError> {
-            for (name, cols, out) in [("features.npy", N_FEATURES, &mut *features), ("targets.npy", 5, &mut *targets)] {
+            for (name, cols, out) in
+                [("features.npy", STORED_FEATURES, &mut *features), ("targets.npy", 5, &mut *targets)]
+            {
                 let path = dir.join(name);
                 let start = out.len();
                 let shape = npy::read_f32_into(&path, out)
@@ -488,6 +493,7 @@ impl CloudDataset {
                 }
                 debug_assert_eq!(out.len() - start, rows * cols);
             }
+            expand_stored_rows(features, f0, rows);
             Ok(())
         };
         let result = read();

@@ -22,8 +22,11 @@
 //! query direction: light scattered n times through Henyey-Greenstein lobes of mean
 //! cosine g has an angular spread close to a lobe of g^n, so these resolve the
 //! forward peak of strongly anisotropic clouds that cos theta alone leaves to the
-//! network. Everything a cloud and a sun share (the pyramid, the
-//! field) is built once in a [`CloudField`].
+//! network. Last, twelve derived from those ([`derive_inputs`]): each phase term
+//! times exp(-a tau) at three attenuations a, tau the optical depth toward the sun at
+//! the query point, so that the network weighs the angular terms by how deep the
+//! light has come. Data sets store the others and loading derives these. Everything a
+//! cloud and a sun share (the pyramid, the field) is built once in a [`CloudField`].
 
 use crate::p2p::DensityPyramid;
 use crate::p2p::pyramid::LevelBlend;
@@ -41,13 +44,36 @@ pub const POINTS: usize = 27;
 pub const HEAD: usize = 3 + PHASE_TERMS;
 /// Phase terms ln(4 pi p_HG(g^n, mu)), n = 1 ..= PHASE_TERMS.
 pub const PHASE_TERMS: usize = 4;
-/// Length of the feature vector.
-pub const N_FEATURES: usize = HEAD + 2 * LEVELS * 3 * PLANE_FEATURES;
+/// Features a data set stores: the query's and the stencil's.
+pub const STORED_FEATURES: usize = HEAD + 2 * LEVELS * 3 * PLANE_FEATURES;
+/// Attenuations a_j of the coupling features ([`derive_inputs`]).
+pub const COUPLING_ATTENUATIONS: [f32; 3] = [1.0, 0.25, 0.0625];
+/// Features derived from the stored ones: each phase term times exp(-a_j tau) for
+/// each attenuation a_j ([`derive_inputs`]).
+pub const COUPLING_FEATURES: usize = PHASE_TERMS * COUPLING_ATTENUATIONS.len();
+/// Length of the feature vector: the stored features, then the coupling.
+pub const N_FEATURES: usize = STORED_FEATURES + COUPLING_FEATURES;
+/// The lengths a model's input may have, the first this many of the feature vector:
+/// the stored features alone (models trained before the coupling) or all.
+pub const INPUT_SETS: [usize; 2] = [STORED_FEATURES, N_FEATURES];
+/// Where the optical depth toward the sun at the query point itself is stored, as
+/// tau_hat: the centre of level 0's middle plane in the sun's block.
+pub const TAU_HAT_AT_X: usize = HEAD + (LEVELS * 3 + 1) * PLANE_FEATURES;
 /// h_0 = largest box extent / this.
 pub const BASE_DIVISIONS: f32 = 64.0;
 
-/// Names of the features, in order (stored in the model's sidecar and checked on load).
+/// Names of the features, in order (stored in the model's sidecar and checked on load):
+/// the stored ones, then the coupling.
 pub fn feature_names() -> Vec<String> {
+    let mut names = stored_feature_names();
+    for n in 1..=PHASE_TERMS {
+        names.extend(COUPLING_ATTENUATIONS.iter().map(|a| format!("ln_phase_g{n}_x_sun_{a}")));
+    }
+    names
+}
+
+/// Names of the features a data set stores (the first [`STORED_FEATURES`]).
+pub fn stored_feature_names() -> Vec<String> {
     let mut names: Vec<String> = ["ln_absorption", "g", "cos_theta"].iter().map(|s| s.to_string()).collect();
     names.extend((1..=PHASE_TERMS).map(|n| format!("ln_phase_g{n}")));
     for what in ["density", "tau_sun"] {
@@ -69,6 +95,43 @@ pub fn feature_names() -> Vec<String> {
 #[inline]
 pub fn absorption_feature(albedo: f32) -> f32 {
     (1.0 - albedo + 1e-3).max(1e-3).ln()
+}
+
+/// The derived features of `row` (length [`N_FEATURES`]) from its stored part, the
+/// coupling: ln(4 pi p_HG(g^n, mu)) exp(-a_j tau) for n = 1 ..= [`PHASE_TERMS`] and
+/// a_j in [`COUPLING_ATTENUATIONS`], tau the optical depth toward the sun at the query
+/// point (from its stored tau_hat). How sharply the light arriving at a point is
+/// peaked depends on how deep it lies: near the lit surface few bounces have turned
+/// it, deep inside many have, so the angular dependence the phase terms describe fades
+/// with tau. A network of ReLUs builds that product only piecewise; given it, the
+/// first layer weighs each phase term by the light's depth directly.
+///
+/// Derived, not stored: data sets keep the stored features and loading appends these.
+#[inline]
+pub fn derive_inputs(row: &mut [f32]) {
+    let (stored, coupling) = row.split_at_mut(STORED_FEATURES);
+    // tau_hat = -ln(1 + tau).
+    let tau = (-stored[TAU_HAT_AT_X]).exp_m1().max(0.0);
+    let s = COUPLING_ATTENUATIONS.map(|a| (-a * tau).exp());
+    for (n, out) in coupling.chunks_exact_mut(COUPLING_ATTENUATIONS.len()).enumerate() {
+        for (o, s) in out.iter_mut().zip(&s) {
+            *o = stored[3 + n] * s;
+        }
+    }
+}
+
+/// Rows of [`STORED_FEATURES`] at the front of `features` (`rows` of them) spread in
+/// place to rows of [`N_FEATURES`] with their derived features; `features` holds
+/// `rows * STORED_FEATURES` values on entry and `rows * N_FEATURES` on return. Rows
+/// move from the last to the first, so none is overwritten before it has moved.
+pub fn expand_stored_rows(features: &mut Vec<f32>, start: usize, rows: usize) {
+    assert_eq!(features.len(), start + rows * STORED_FEATURES, "stored rows");
+    features.resize(start + rows * N_FEATURES, 0.0);
+    for i in (0..rows).rev() {
+        let (from, to) = (start + i * STORED_FEATURES, start + i * N_FEATURES);
+        features.copy_within(from..from + STORED_FEATURES, to);
+        derive_inputs(&mut features[to..to + N_FEATURES]);
+    }
 }
 
 /// ln(4 pi p_HG(g, mu)) = ln((1 - g^2) / (1 + g^2 - 2 g mu)^1.5).
@@ -207,9 +270,10 @@ impl CloudField {
         let mut raw = [0.0f32; 2 * LEVELS * POINTS];
         self.raw_stencil(&pts, &mut raw);
         let sin = (1.0 - cos * cos).max(0.0).sqrt();
-        for (o, r) in out[HEAD..].chunks_exact_mut(PLANE_FEATURES).zip(raw.chunks_exact(PLANE)) {
+        for (o, r) in out[HEAD..STORED_FEATURES].chunks_exact_mut(PLANE_FEATURES).zip(raw.chunks_exact(PLANE)) {
             encode_plane(r, sin, o);
         }
+        derive_inputs(out);
     }
 
     /// The stencil's raw values at `pts` (from [`CloudField::stencil`]): the cell
@@ -435,7 +499,7 @@ mod tests {
             // The encoding keeps the raw values: centre, ring mean and the scaled
             // deviations give them back.
             let sin = (1.0 - cos * cos).sqrt();
-            for (plane, enc) in out[HEAD..].chunks_exact(PLANE_FEATURES).enumerate() {
+            for (plane, enc) in out[HEAD..STORED_FEATURES].chunks_exact(PLANE_FEATURES).enumerate() {
                 let r = &raw[plane * PLANE..(plane + 1) * PLANE];
                 assert_eq!(enc[0], r[4]);
                 let ring = [0, 1, 2, 3, 5, 6, 7, 8];
@@ -483,7 +547,45 @@ mod tests {
                     assert!((tau - march).abs() <= 0.05 * march + 1.5 * m.rho() * vs, "{tau} vs {march}");
                 }
             }
+            // The coupling: each phase term times exp(-a tau) with tau marched from x;
+            // the field's error in tau (as above) bounds the factor's by a dtau.
+            let march = m.optical_depth(x, -sun.direction(), f32::INFINITY, 0.25 * vs, f32::INFINITY);
+            let dtau = 0.05 * march + 1.5 * m.rho() * vs;
+            for n in 1..=PHASE_TERMS {
+                let hg = PhaseFunction::HenyeyGreenstein { g: 0.6f32.powi(n as i32) };
+                let ln_p = (4.0 * std::f32::consts::PI * hg.eval(omega, -sun.direction())).ln();
+                for (j, a) in COUPLING_ATTENUATIONS.iter().enumerate() {
+                    let got = out[STORED_FEATURES + (n - 1) * COUPLING_ATTENUATIONS.len() + j];
+                    let want = ln_p * (-a * march).exp();
+                    let tol = ln_p.abs() * (-a * (march - dtau).max(0.0)).exp() * (1.0 - (-a * dtau).exp()) + 1e-4;
+                    assert!((got - want).abs() <= tol, "coupling n {n} a {a}: {got} vs {want} (tau {march})");
+                }
+            }
         }
+    }
+
+    /// Data sets store the first STORED_FEATURES values; spreading stored rows in place
+    /// gives back every row's whole vector, derived as `features` derives it.
+    #[test]
+    fn stored_rows_expand_to_whole_vectors() {
+        let m = blob_medium();
+        let sun = Sun::new(Vec3::new(0.3, -1.0, -0.2), Vec3::ONE, 0.0).unwrap();
+        let f = CloudField::build(&m, &sun, 64);
+        let mut rng = engine::Rng::new(11, 0, 0);
+        let (mut whole, mut stored) = (vec![], vec![1.5f32; 3]);
+        let mut row = vec![0.0; N_FEATURES];
+        for k in 0..20 {
+            let x = (Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5) * 0.6;
+            let omega = engine::sampling::sample_uniform_sphere(rng.uniform2());
+            f.features(0.9 + 0.005 * k as f32, 0.85, x, omega, &mut row);
+            whole.extend_from_slice(&row);
+            stored.extend_from_slice(&row[..STORED_FEATURES]);
+        }
+        // Rows after three values already in the buffer, which stay.
+        expand_stored_rows(&mut stored, 3, 20);
+        assert_eq!(&stored[..3], &[1.5; 3]);
+        assert_eq!(&stored[3..], &whole[..]);
+        assert_eq!(feature_names()[..STORED_FEATURES], stored_feature_names()[..]);
     }
 
     /// The features are continuous where the frame is not: queries ever closer to the
@@ -554,7 +656,7 @@ mod tests {
     /// A field reading a sun field built by its caller (the preview's) gives the
     /// features of one that built the same field itself, bit for bit, shares the
     /// caller's field and pyramid, and counts the pyramid only; another field changes
-    /// the sun's features and nothing else.
+    /// the sun's features (and those derived from them) and nothing else.
     #[test]
     fn a_shared_sun_field_reads_as_its_own() {
         let m = blob_medium();
@@ -579,7 +681,8 @@ mod tests {
             finer.features(0.95, 0.8, x, omega, &mut ff);
             assert_eq!(fo, fs);
             for (j, (a, b)) in fo.iter().zip(&ff).enumerate() {
-                if names[j].starts_with("tau_sun") {
+                // The sun's optical depths and the features derived from them.
+                if names[j].starts_with("tau_sun") || names[j].contains("_x_sun_") {
                     moved += (a != b) as usize;
                 } else {
                     assert_eq!(a, b, "{}", names[j]);

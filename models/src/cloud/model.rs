@@ -8,7 +8,7 @@
 //! by the sidecar's statistics. Single scattering at the query point is left to the
 //! renderer's next event estimation.
 
-use super::features::{CloudField, N_FEATURES, feature_names};
+use super::features::{CloudField, INPUT_SETS, N_FEATURES, feature_names};
 use crate::global::model::{ModelError, read_model_files, shipped_once};
 use crate::nn::dense::Activation;
 use crate::nn::mlp::{Mlp, Scratch};
@@ -95,17 +95,19 @@ impl CloudModel {
                 sidecar.format, sidecar.format_version
             )));
         }
-        if sidecar.feature_names != feature_names() {
+        // A model reads the first n of the features: the stored ones, and some or all of
+        // the derived ones.
+        let n = sidecar.feature_names.len();
+        if !INPUT_SETS.contains(&n) || sidecar.feature_names[..] != feature_names()[..n] {
             return Err(layout(format!(
-                "its {} features are not the {N_FEATURES} this code computes",
-                sidecar.feature_names.len()
+                "its {n} features are not the first {INPUT_SETS:?} of the {N_FEATURES} this code computes"
             )));
         }
         if sidecar.target != TARGET_TRANSFORM {
             return Err(layout(format!("target {:?} is not {TARGET_TRANSFORM:?}", sidecar.target)));
         }
-        let stats_ok = sidecar.feature_mean.len() == N_FEATURES
-            && sidecar.feature_std.len() == N_FEATURES
+        let stats_ok = sidecar.feature_mean.len() == n
+            && sidecar.feature_std.len() == n
             && sidecar.feature_mean.iter().chain(&sidecar.feature_std).all(|v| v.is_finite())
             && sidecar.feature_std.iter().all(|v| *v > 0.0)
             && sidecar.target_mean.is_finite()
@@ -114,7 +116,7 @@ impl CloudModel {
         if !stats_ok {
             return Err(layout("the standardization statistics are missing, of the wrong length or not finite".into()));
         }
-        let mut widths = vec![N_FEATURES];
+        let mut widths = vec![n];
         widths.extend(&sidecar.hidden);
         widths.push(1);
         let mlp = Mlp::from_safetensors(bytes, &widths, sidecar.activation)
@@ -127,12 +129,18 @@ impl CloudModel {
         CloudModel { sidecar, mlp, inv_std }
     }
 
-    /// The network output o for a raw feature row.
+    /// How many of the feature vector's values the network reads (its first ones).
+    pub fn inputs(&self) -> usize {
+        self.inv_std.len()
+    }
+
+    /// The network output o for a raw feature row (its first [`CloudModel::inputs`]
+    /// values are read).
     #[inline]
     pub fn output(&self, raw: &[f32], scratch: &mut Scratch) -> f32 {
         self.mlp.ensure(scratch);
         let mut x = std::mem::take(&mut scratch.features);
-        for (k, v) in raw.iter().enumerate() {
+        for (k, v) in raw[..self.inputs()].iter().enumerate() {
             x[k] = (v - self.sidecar.feature_mean[k]) * self.inv_std[k];
         }
         let o = self.mlp.forward_sized(&x, scratch);

@@ -77,6 +77,39 @@ pub struct CloudTrainConfig {
     /// split after the stochastic fit (0: none; [`crate::nn::refit`]).
     #[serde(default)]
     pub refit_output: usize,
+    /// Which derived features ([`super::features::derive_inputs`]) the network reads
+    /// beside the stored ones.
+    #[serde(default)]
+    pub derived: DerivedInputs,
+}
+
+/// The derived features a network reads.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DerivedInputs {
+    /// The stored features alone (a configuration that does not name its derived
+    /// inputs was made before there were any).
+    #[default]
+    None,
+    /// And the phase terms weighted by the sun's transmittance (the default of new runs).
+    Coupling,
+}
+
+impl DerivedInputs {
+    pub const NAMES: [&str; 2] = ["none", "coupling"];
+
+    pub fn parse(s: &str) -> Option<Self> {
+        [DerivedInputs::None, DerivedInputs::Coupling].into_iter().find(|d| d.name() == s)
+    }
+
+    pub const fn name(self) -> &'static str {
+        Self::NAMES[self as usize]
+    }
+
+    /// How many of the feature vector's values the network reads.
+    pub const fn inputs(self) -> usize {
+        super::features::INPUT_SETS[self as usize]
+    }
 }
 
 impl Default for CloudTrainConfig {
@@ -99,6 +132,7 @@ impl Default for CloudTrainConfig {
             max_points: 0,
             refit_output: 0,
             loss_power: 2.0,
+            derived: DerivedInputs::Coupling,
         }
     }
 }
@@ -163,6 +197,7 @@ impl CloudTrainData {
             rows += CloudDataset::rows_of(d, m).map_err(data)?;
         }
         let mut out = CloudTrainData {
+            // The stored rows are spread in place to rows of N_FEATURES as they load.
             features: Vec::with_capacity(rows * N_FEATURES),
             targets: Vec::with_capacity(rows * 5),
             clouds: Vec::with_capacity(rows),
@@ -363,11 +398,13 @@ pub fn train(
         Some(d) => d.targets[i],
         None => FOUR_PI * data.targets[i * 5 + col],
     };
+    // The network reads the first n_in values of each row.
+    let n_in = cfg.derived.inputs();
     // Statistics of the training split (f64 accumulation).
-    let (mut mean, mut sq) = (vec![0.0f64; N_FEATURES], vec![0.0f64; N_FEATURES]);
+    let (mut mean, mut sq) = (vec![0.0f64; n_in], vec![0.0f64; n_in]);
     let (mut ym, mut ysq) = (0.0f64, 0.0f64);
     for &i in &train_rows {
-        for (k, v) in data.row(i).iter().enumerate() {
+        for (k, v) in data.row(i)[..n_in].iter().enumerate() {
             mean[k] += *v as f64;
             sq[k] += (*v as f64).powi(2);
         }
@@ -384,17 +421,18 @@ pub fn train(
     let feature_std: Vec<f32> = mean.iter().zip(&sq).map(|(m, q)| std_of(*m, *q) as f32).collect();
     let (target_mean, target_std) = ((ym / n) as f32, std_of(ym, ysq) as f32);
     let standardize_row = |row: &mut [f32]| {
-        for (k, v) in row.iter_mut().enumerate() {
+        for (k, v) in row[..n_in].iter_mut().enumerate() {
             *v = (*v - feature_mean[k]) / feature_std[k];
         }
     };
-    // The test split, raw (for the bias report) and standardized, copied out; then the
-    // training rows are standardized in place, moved to the front and the rest dropped,
-    // so the features are held once (a 6 M-point set is 10.5 GB).
+    // The test split, raw (whole rows, for the bias report) and standardized (the
+    // network's n_in), copied out; then the training rows' first n_in values are
+    // standardized in place, moved to the front and the rest dropped, so the features
+    // are held once (a 6 M-point set is 10.8 GB).
     let f = N_FEATURES;
     let test_raw: Vec<f32> = test_rows.iter().flat_map(|&i| data.row(i).iter().copied()).collect();
-    let mut x_test = test_raw.clone();
-    x_test.chunks_exact_mut(f).for_each(standardize_row);
+    let mut x_test: Vec<f32> = test_raw.chunks_exact(f).flat_map(|r| r[..n_in].iter().copied()).collect();
+    x_test.chunks_exact_mut(n_in).for_each(standardize_row);
     let test_targets: Vec<f32> =
         test_rows.iter().flat_map(|&i| data.targets[i * 5..i * 5 + 5].iter().copied()).collect();
     let test_clouds: Vec<(u32, u64)> = test_rows.iter().map(|&i| data.clouds[i]).collect();
@@ -403,14 +441,14 @@ pub fn train(
     let y_train: Vec<f32> = train_rows.iter().map(|&i| train_target(i)).collect();
     let mut x_train = std::mem::take(&mut data.features);
     for (j, &i) in train_rows.iter().enumerate() {
-        // Rows ascend, so row i >= j is never one already moved.
-        x_train.copy_within(i * f..(i + 1) * f, j * f);
-        standardize_row(&mut x_train[j * f..(j + 1) * f]);
+        // Rows ascend and j n_in <= i f, so no row is overwritten before it has moved.
+        x_train.copy_within(i * f..i * f + n_in, j * n_in);
+        standardize_row(&mut x_train[j * n_in..(j + 1) * n_in]);
     }
-    x_train.truncate(train_rows.len() * f);
+    x_train.truncate(train_rows.len() * n_in);
     x_train.shrink_to_fit();
     let fit_data = FitData {
-        n_f: N_FEATURES,
+        n_f: n_in,
         x_train,
         y_train,
         x_test,
@@ -429,14 +467,14 @@ pub fn train(
         fit(&fit_data, &cfg.schedule, &paths, resume, identity, observer)?;
     let refit = if cfg.refit_output > 0 {
         let (x, y) = (&fit_data.x_train, &fit_data.y_train);
-        Some(refit_output_layer(&mut net, x, y, N_FEATURES, fit_data.loss, cfg.refit_output)?)
+        Some(refit_output_layer(&mut net, x, y, n_in, fit_data.loss, cfg.refit_output)?)
     } else {
         None
     };
     let mut sidecar = CloudSidecar {
         format: MODEL_FORMAT.into(),
         format_version: MODEL_FORMAT_VERSION,
-        feature_names: feature_names(),
+        feature_names: feature_names()[..n_in].to_vec(),
         feature_mean,
         feature_std,
         target: TARGET_TRANSFORM.into(),
