@@ -241,14 +241,18 @@ fn models_read_the_stored_features_or_all() {
     assert_eq!(model.sidecar.feature_names.len(), STORED_FEATURES);
     let (coupled, _) = train(data.clone(), None, &cfg, &root.path().join("c"), false, "test", "test", &Quiet).unwrap();
     assert_eq!(coupled.inputs(), N_FEATURES);
-    // The stored-only network ignores the derived values: changing them changes nothing.
+    // The stored-only network ignores the derived values: changing them changes nothing;
+    // the coupled one reads them. One scratch serves both, in either order.
     let mut s = model.mlp.scratch();
+    let mut moved = 0;
     for row in data.features.chunks_exact(N_FEATURES).take(10) {
         let mut other = row.to_vec();
         other[STORED_FEATURES..].iter_mut().for_each(|v| *v += 1.0);
+        moved += (coupled.predict_features(row, &mut s) != coupled.predict_features(&other, &mut s)) as usize;
         assert_eq!(model.predict_features(row, &mut s), model.predict_features(&other, &mut s));
     }
-    // A sidecar naming a length between the two is refused.
+    assert!(moved > 0, "the coupled network does not read the derived values");
+    // A sidecar naming another length (one short of the stored features) is refused.
     let text = std::fs::read_to_string(root.path().join("p.json")).unwrap();
     let mut side: serde_json::Value = serde_json::from_str(&text).unwrap();
     for key in ["feature_names", "feature_mean", "feature_std"] {

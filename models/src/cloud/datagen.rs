@@ -428,7 +428,10 @@ pub struct CloudDataset {
 impl CloudDataset {
     pub fn load(dir: &Path) -> Result<CloudDataset, DatagenError> {
         let manifest = Self::manifest_of(dir)?;
-        let (mut features, mut targets) = (vec![], vec![]);
+        // Reserved for the rows spread to N_FEATURES, so that the spreading does not
+        // reallocate.
+        let rows = Self::rows_of(dir, &manifest)?;
+        let (mut features, mut targets) = (Vec::with_capacity(rows * N_FEATURES), Vec::with_capacity(rows * 5));
         Self::read_rows(dir, &manifest, &mut features, &mut targets)?;
         Ok(CloudDataset { features, targets, manifest })
     }

@@ -109,6 +109,7 @@ pub fn absorption_feature(albedo: f32) -> f32 {
 /// Derived, not stored: data sets keep the stored features and loading appends these.
 #[inline]
 pub fn derive_inputs(row: &mut [f32]) {
+    assert_eq!(row.len(), N_FEATURES, "feature vector length");
     let (stored, coupling) = row.split_at_mut(STORED_FEATURES);
     // tau_hat = -ln(1 + tau).
     let tau = (-stored[TAU_HAT_AT_X]).exp_m1().max(0.0);
@@ -547,6 +548,11 @@ mod tests {
                     assert!((tau - march).abs() <= 0.05 * march + 1.5 * m.rho() * vs, "{tau} vs {march}");
                 }
             }
+            // The coupling reads tau_hat at x itself, the centre of level 0's middle
+            // plane (exactly; the tolerances below could not tell a neighbour apart).
+            assert_eq!(feature_names()[TAU_HAT_AT_X], "tau_sun_0_1_centre");
+            assert_eq!(out[TAU_HAT_AT_X], raw[LEVELS * POINTS + 13]);
+            assert_eq!(offset(13), Vec3::ZERO);
             // The coupling: each phase term times exp(-a tau) with tau marched from x;
             // the field's error in tau (as above) bounds the factor's by a dtau.
             let march = m.optical_depth(x, -sun.direction(), f32::INFINITY, 0.25 * vs, f32::INFINITY);

@@ -143,7 +143,8 @@ impl CloudModel {
         for (k, v) in raw[..self.inputs()].iter().enumerate() {
             x[k] = (v - self.sidecar.feature_mean[k]) * self.inv_std[k];
         }
-        let o = self.mlp.forward_sized(&x, scratch);
+        // The scratch row may be longer (another model on this thread read more inputs).
+        let o = self.mlp.forward_sized(&x[..self.inputs()], scratch);
         scratch.features = x;
         o
     }

@@ -485,7 +485,7 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
             "# nimbus bench predict-cloud: scene-a {}^3, rho {}, {} features, hidden {:?}",
             args.resolution,
             args.rho,
-            models::cloud::features::N_FEATURES,
+            model.inputs(),
             model.sidecar.hidden
         );
         println!(
@@ -512,7 +512,7 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
             total_us / event_us
         );
         println!("| features alone | {features_us:.2} us ({features_range}) | |");
-        println!("| network alone, on stored features | {network_us:.2} us ({network_range}) | |");
+        println!("| network alone, on precomputed features | {network_us:.2} us ({network_range}) | |");
         println!("| path-traced scattering event (free flight + NEE) | {event_us:.3} us ({event_range}) | |");
         Ok(())
     })
