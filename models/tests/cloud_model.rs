@@ -232,8 +232,8 @@ fn training_resumes_and_the_model_round_trips() {
 /// coupling's network reads them all; other lengths are refused.
 #[test]
 fn models_read_the_stored_features_or_all() {
+    use models::cloud::features::DerivedInputs;
     use models::cloud::features::STORED_FEATURES;
-    use models::cloud::train::DerivedInputs;
     let Small { root, data, cfg, .. } = small_training_set();
     let plain = CloudTrainConfig { derived: DerivedInputs::None, ..cfg.clone() };
     let (model, _) = train(data.clone(), None, &plain, &root.path().join("p"), false, "test", "test", &Quiet).unwrap();

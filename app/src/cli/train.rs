@@ -93,7 +93,8 @@ pub struct TrainCloudArgs {
 }
 
 fn train_cloud(args: TrainCloudArgs) -> Result<()> {
-    use models::cloud::train::{BiasReport, CloudTrainConfig, CloudTrainData, DerivedInputs, TargetColumn};
+    use models::cloud::features::DerivedInputs;
+    use models::cloud::train::{BiasReport, CloudTrainConfig, CloudTrainData, TargetColumn};
     let cfg = CloudTrainConfig {
         schedule: models::nn::fit::FitSchedule {
             hidden: args.hidden.clone(),

@@ -346,11 +346,10 @@ pub fn generate_point(spec: &CloudSpec, case: &Case, index: u64) -> (Vec<f32>, u
     let n = spec.samples as f64;
     let mean = sum / n;
     let std_error = if spec.samples > 1 { ((sq / n - mean * mean).max(0.0) / (n - 1.0)).sqrt() } else { 0.0 };
-    let mut row = vec![0.0f32; N_FEATURES];
+    // The derived features are computed on loading ([`CloudDataset::read_rows`]).
+    let mut row = vec![0.0f32; STORED_FEATURES];
     let m = &case.scene.medium;
-    case.field.features(m.albedo(), m.phase().mean_cosine(), x, wo, &mut row);
-    // The derived features are recomputed on loading ([`CloudDataset::read_rows`]).
-    row.truncate(STORED_FEATURES);
+    case.field.stored_features(m.albedo(), m.phase().mean_cosine(), x, wo, &mut row);
     row.extend_from_slice(&[mean as f32, std_error as f32, n as f32, first as f32, vertex as f32]);
     (row, spec.samples)
 }

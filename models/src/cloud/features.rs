@@ -44,6 +44,8 @@ pub const POINTS: usize = 27;
 pub const HEAD: usize = 3 + PHASE_TERMS;
 /// Phase terms ln(4 pi p_HG(g^n, mu)), n = 1 ..= PHASE_TERMS.
 pub const PHASE_TERMS: usize = 4;
+/// Where the phase terms start (after the albedo, g and cos theta).
+const PHASE_START: usize = HEAD - PHASE_TERMS;
 /// Features a data set stores: the query's and the stencil's.
 pub const STORED_FEATURES: usize = HEAD + 2 * LEVELS * 3 * PLANE_FEATURES;
 /// Attenuations a_j of the coupling features ([`derive_inputs`]).
@@ -53,9 +55,50 @@ pub const COUPLING_ATTENUATIONS: [f32; 3] = [1.0, 0.25, 0.0625];
 pub const COUPLING_FEATURES: usize = PHASE_TERMS * COUPLING_ATTENUATIONS.len();
 /// Length of the feature vector: the stored features, then the coupling.
 pub const N_FEATURES: usize = STORED_FEATURES + COUPLING_FEATURES;
-/// The lengths a model's input may have, the first this many of the feature vector:
-/// the stored features alone (models trained before the coupling) or all.
-pub const INPUT_SETS: [usize; 2] = [STORED_FEATURES, N_FEATURES];
+
+/// The derived features a network reads beside the stored ones; each choice is a
+/// length of the feature vector's prefix that a model may read.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DerivedInputs {
+    /// The stored features alone (the models before the coupling; a training
+    /// configuration that does not name its derived inputs was made before there were
+    /// any).
+    #[default]
+    None,
+    /// And the coupling ([`derive_inputs`]; the default of new runs).
+    Coupling,
+}
+
+impl DerivedInputs {
+    pub const ALL: [DerivedInputs; 2] = [DerivedInputs::None, DerivedInputs::Coupling];
+    /// The words of the command line, in the order of [`Self::ALL`].
+    pub const NAMES: [&str; 2] = [Self::ALL[0].name(), Self::ALL[1].name()];
+
+    pub const fn name(self) -> &'static str {
+        match self {
+            DerivedInputs::None => "none",
+            DerivedInputs::Coupling => "coupling",
+        }
+    }
+
+    pub fn parse(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|d| d.name() == name)
+    }
+
+    /// How many of the feature vector's values a network of these inputs reads.
+    pub const fn inputs(self) -> usize {
+        match self {
+            DerivedInputs::None => STORED_FEATURES,
+            DerivedInputs::Coupling => N_FEATURES,
+        }
+    }
+
+    /// The choice whose networks read `inputs` values, if any.
+    pub fn of_inputs(inputs: usize) -> Option<Self> {
+        Self::ALL.into_iter().find(|d| d.inputs() == inputs)
+    }
+}
 /// Where the optical depth toward the sun at the query point itself is stored, as
 /// tau_hat: the centre of level 0's middle plane in the sun's block.
 pub const TAU_HAT_AT_X: usize = HEAD + (LEVELS * 3 + 1) * PLANE_FEATURES;
@@ -116,7 +159,7 @@ pub fn derive_inputs(row: &mut [f32]) {
     let s = COUPLING_ATTENUATIONS.map(|a| (-a * tau).exp());
     for (n, out) in coupling.chunks_exact_mut(COUPLING_ATTENUATIONS.len()).enumerate() {
         for (o, s) in out.iter_mut().zip(&s) {
-            *o = stored[3 + n] * s;
+            *o = stored[PHASE_START + n] * s;
         }
     }
 }
@@ -254,9 +297,18 @@ impl CloudField {
 
     /// The feature vector at `x` for query direction `omega` (unit, pointing away from
     /// x) of a medium with `albedo` and phase mean cosine `g` into `out` (length
-    /// [`N_FEATURES`]). No allocation.
+    /// [`N_FEATURES`]): the stored features ([`CloudField::stored_features`]), then
+    /// the derived ones ([`derive_inputs`]). No allocation.
     pub fn features(&self, albedo: f32, g: f32, x: Vec3, omega: Vec3, out: &mut [f32]) {
         assert_eq!(out.len(), N_FEATURES, "feature vector length");
+        self.stored_features(albedo, g, x, omega, &mut out[..STORED_FEATURES]);
+        derive_inputs(out);
+    }
+
+    /// The first [`STORED_FEATURES`] of [`CloudField::features`] into `out` (that
+    /// length): what a data set stores.
+    pub fn stored_features(&self, albedo: f32, g: f32, x: Vec3, omega: Vec3, out: &mut [f32]) {
+        assert_eq!(out.len(), STORED_FEATURES, "stored feature vector length");
         let mut pts = [Vec3::ZERO; LEVELS * POINTS];
         self.stencil(x, omega, &mut pts);
         out[0] = absorption_feature(albedo);
@@ -264,17 +316,16 @@ impl CloudField {
         let cos = omega.dot(self.w).clamp(-1.0, 1.0);
         out[2] = cos;
         let mut gn = g;
-        for o in &mut out[3..HEAD] {
+        for o in &mut out[PHASE_START..HEAD] {
             *o = ln_phase(gn, -cos);
             gn *= g;
         }
         let mut raw = [0.0f32; 2 * LEVELS * POINTS];
         self.raw_stencil(&pts, &mut raw);
         let sin = (1.0 - cos * cos).max(0.0).sqrt();
-        for (o, r) in out[HEAD..STORED_FEATURES].chunks_exact_mut(PLANE_FEATURES).zip(raw.chunks_exact(PLANE)) {
+        for (o, r) in out[HEAD..].chunks_exact_mut(PLANE_FEATURES).zip(raw.chunks_exact(PLANE)) {
             encode_plane(r, sin, o);
         }
-        derive_inputs(out);
     }
 
     /// The stencil's raw values at `pts` (from [`CloudField::stencil`]): the cell

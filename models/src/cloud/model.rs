@@ -8,7 +8,7 @@
 //! by the sidecar's statistics. Single scattering at the query point is left to the
 //! renderer's next event estimation.
 
-use super::features::{CloudField, INPUT_SETS, N_FEATURES, feature_names};
+use super::features::{CloudField, DerivedInputs, N_FEATURES, feature_names};
 use crate::global::model::{ModelError, read_model_files, shipped_once};
 use crate::nn::dense::Activation;
 use crate::nn::mlp::{Mlp, Scratch};
@@ -95,12 +95,13 @@ impl CloudModel {
                 sidecar.format, sidecar.format_version
             )));
         }
-        // A model reads the first n of the features: the stored ones, and some or all of
-        // the derived ones.
+        // A model reads the first n of the features: the stored ones, and the derived
+        // ones its training chose.
         let n = sidecar.feature_names.len();
-        if !INPUT_SETS.contains(&n) || sidecar.feature_names[..] != feature_names()[..n] {
+        if DerivedInputs::of_inputs(n).is_none() || sidecar.feature_names[..] != feature_names()[..n] {
+            let lengths = DerivedInputs::ALL.map(DerivedInputs::inputs);
             return Err(layout(format!(
-                "its {n} features are not the first {INPUT_SETS:?} of the {N_FEATURES} this code computes"
+                "its {n} features are not the first {lengths:?} of the {N_FEATURES} this code computes"
             )));
         }
         if sidecar.target != TARGET_TRANSFORM {

@@ -9,7 +9,7 @@
 //! trained networks' predictions instead of the paths (distillation).
 
 use super::datagen::CloudDataset;
-use super::features::{N_FEATURES, feature_names};
+use super::features::{DerivedInputs, N_FEATURES, feature_names};
 use super::model::{CloudModel, CloudSidecar, MODEL_FORMAT, MODEL_FORMAT_VERSION, TARGET_TRANSFORM};
 use crate::nn::dense::Activation;
 use crate::nn::fit::{
@@ -81,35 +81,6 @@ pub struct CloudTrainConfig {
     /// beside the stored ones.
     #[serde(default)]
     pub derived: DerivedInputs,
-}
-
-/// The derived features a network reads.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum DerivedInputs {
-    /// The stored features alone (a configuration that does not name its derived
-    /// inputs was made before there were any).
-    #[default]
-    None,
-    /// And the phase terms weighted by the sun's transmittance (the default of new runs).
-    Coupling,
-}
-
-impl DerivedInputs {
-    pub const NAMES: [&str; 2] = ["none", "coupling"];
-
-    pub fn parse(s: &str) -> Option<Self> {
-        [DerivedInputs::None, DerivedInputs::Coupling].into_iter().find(|d| d.name() == s)
-    }
-
-    pub const fn name(self) -> &'static str {
-        Self::NAMES[self as usize]
-    }
-
-    /// How many of the feature vector's values the network reads.
-    pub const fn inputs(self) -> usize {
-        super::features::INPUT_SETS[self as usize]
-    }
 }
 
 impl Default for CloudTrainConfig {

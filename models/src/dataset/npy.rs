@@ -117,8 +117,6 @@ pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), NpyEr
     write_bytes_atomically(path, &npy_bytes_f32(shape, data)).map_err(NpyError::Write)
 }
 
-/// A float32 `.npy` header: the array's shape, where its data starts and how many
-/// values it holds. `bytes` is the file's start (at least through the header).
 /// Where a `.npy` file's header text starts and where it ends (the data's start),
 /// from the file's first 12 bytes (version 1.0 needs 10).
 fn header_span(prefix: &[u8]) -> Result<(usize, usize), String> {
@@ -133,6 +131,8 @@ fn header_span(prefix: &[u8]) -> Result<(usize, usize), String> {
     Ok((header_start, header_start + header_len))
 }
 
+/// A float32 `.npy` header: the array's shape, where its data starts and how many
+/// values it holds. `bytes` is the file's start (at least through the header).
 fn parse_header(bytes: &[u8]) -> Result<(Vec<usize>, usize, usize), String> {
     let (header_start, data_start) = header_span(bytes)?;
     if data_start > bytes.len() {
