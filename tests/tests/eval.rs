@@ -155,4 +155,17 @@ fn repeated_preview_runs_report_their_median() {
     }
     let md = std::fs::read_to_string(out.join("preview.md")).unwrap();
     assert!(md.contains("(median of 3 runs: "), "{md}");
+    // A preview's floor, first pass and time are measured against the reference: a
+    // reference of other samples measures all three previews again, rather than
+    // reading cells measured against the first one from the cache.
+    let cached_previews = || {
+        std::fs::read_dir(out.join("cache"))
+            .unwrap()
+            .filter_map(|e| e.ok()?.file_name().into_string().ok())
+            .filter(|n| n.contains("_preview_") && n.ends_with(".json"))
+            .count()
+    };
+    assert_eq!(cached_previews(), 3);
+    eval(&EvalArgs { spp_ref: 256, ..args }).unwrap();
+    assert_eq!(cached_previews(), 6, "the previews measured against the second reference are cells of their own");
 }

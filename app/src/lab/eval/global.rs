@@ -509,7 +509,9 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
                 repeats: args.preview_repeats.max(1),
                 control: &control,
                 cache: &cache,
-                key: &format!("{key}_{model_id}"),
+                // The floor, the first pass's error and the time to 5 % are measured
+                // against the reference, so its samples are part of the key.
+                key: &format!("{key}_ref{}_{model_id}", args.spp_ref),
                 labels: (label, config, *rho),
             };
             let cells = job.run()?;

@@ -84,7 +84,7 @@ pub struct PreviewJob<'a> {
     pub repeats: u32,
     pub control: &'a RenderControl,
     pub cache: &'a Path,
-    /// The configuration's cache key and labels.
+    /// The configuration's cache key (scene, reference, model) and labels.
     pub key: &'a str,
     pub labels: (&'a str, &'a str, f32),
 }
