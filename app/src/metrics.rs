@@ -150,21 +150,46 @@ pub fn relative_rmse(img: &[[f32; 3]], reference: &Image, mask: &[bool]) -> f64 
 /// subtracted: what is left is the error no amount of samples removes, the bias part
 /// of the RMSE (the floor a biased estimator converges to).
 pub fn relative_rmse_less(img: &[[f32; 3]], reference: &Image, mask: &[bool], img_var: Option<&[[f32; 3]]>) -> f64 {
-    let (mut se, mut r, mut n) = (0.0f64, 0.0f64, 0usize);
+    relative_rmse_with_error(img, reference, mask, img_var).0
+}
+
+/// [`relative_rmse_less`] and its standard error over the pixels: the per-pixel
+/// terms' standard deviation over sqrt(n), carried through the square root (where the
+/// squared error's estimate is at most its own standard error, the square root of that
+/// error, the size of what cannot be told from 0). Against a reference far noisier
+/// than the error it measures, the estimate is a small difference of large numbers;
+/// this says how small.
+pub fn relative_rmse_with_error(
+    img: &[[f32; 3]],
+    reference: &Image,
+    mask: &[bool],
+    img_var: Option<&[[f32; 3]]>,
+) -> (f64, f64) {
+    let (mut sum, mut sum_sq, mut r, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
     for (i, m) in mask.iter().enumerate() {
         if *m {
             let (a, b, v) = (&img[i], &reference.mean[i], &reference.var[i]);
+            let mut t = 0.0;
             for c in 0..3 {
                 let d = a[c] as f64 - b[c] as f64;
                 let own = img_var.map_or(0.0, |iv| iv[i][c] as f64);
-                se += (d * d - v[c] as f64 - own) / 3.0;
+                t += (d * d - v[c] as f64 - own) / 3.0;
             }
+            (sum, sum_sq) = (sum + t, sum_sq + t * t);
             r += avg3(b);
             n += 1;
         }
     }
     // No lit pixel: no preview can be judged.
-    if n == 0 || r <= 0.0 { f64::INFINITY } else { (se / n as f64).max(0.0).sqrt() / (r / n as f64) }
+    if n == 0 || r <= 0.0 {
+        return (f64::INFINITY, f64::INFINITY);
+    }
+    let nf = n as f64;
+    let (mean_sq, ref_mean) = (sum / nf, r / nf);
+    let se_sq = if n > 1 { ((sum_sq - sum * sum / nf).max(0.0) / (nf - 1.0) / nf).sqrt() } else { f64::INFINITY };
+    let value = mean_sq.max(0.0).sqrt();
+    let se = if mean_sq > se_sq { se_sq / (2.0 * value) } else { se_sq.sqrt() };
+    (value / ref_mean, se / ref_mean)
 }
 
 /// The reference's own relative noise: sqrt(mean over `mask` of its variance of the
@@ -280,6 +305,30 @@ mod tests {
             let (_, se) = agrees(rel, &reference, term, exact, &format!("seed {seed}, floor"));
             assert!(exact > 8.0 * se, "the test's bias must be resolvable: {exact} vs se {se}");
         }
+    }
+
+    /// The floor's standard error describes its scatter: over 16 independent
+    /// references and images of one truth, the floors' standard deviation and the
+    /// reported standard error (their mean) agree within the spread a standard
+    /// deviation of 16 draws has (chi-square with 15 degrees of freedom: below half or
+    /// above twice the truth with probability 0.002 and 10^-9).
+    #[test]
+    fn rmse_floor_error_describes_its_scatter() {
+        let (mut floors, mut errors) = (vec![], vec![]);
+        for seed in 20..36 {
+            let (truth, _, reference, img) = setup(seed, 16, 64, 0.05);
+            let (f, e) = relative_rmse_with_error(&img.mean, &reference, &vec![true; truth.len()], Some(&img.var));
+            assert_eq!(f, relative_rmse_less(&img.mean, &reference, &vec![true; truth.len()], Some(&img.var)));
+            floors.push(f);
+            errors.push(e);
+        }
+        let (mean, _) = mean_se(&floors);
+        let sd = (floors.iter().map(|f| (f - mean).powi(2)).sum::<f64>() / 15.0).sqrt();
+        let reported = errors.iter().sum::<f64>() / 16.0;
+        eprintln!("floor {mean}: sd {sd}, reported {reported}");
+        assert!(reported > 0.5 * sd && reported < 2.0 * sd, "floors {floors:?}: sd {sd}, reported {reported}");
+        // A noisy reference (16 samples) makes the error large beside the floor itself.
+        assert!(reported > 0.02 * mean, "floor {mean}, error {reported}");
     }
 
     /// Projection: an unbiased estimator reaching 5 % needs TTUV / (0.05 mean)^2

@@ -11,7 +11,7 @@
 //! down to it.
 
 use super::common::{image_npy, read_image_npy, read_json, render_tracked, write_json};
-use crate::metrics::{Image, avg3, downscale, relative_rmse_less};
+use crate::metrics::{Image, avg3, downscale, relative_rmse_with_error};
 use crate::output::write_bytes_atomically;
 use crate::scene::SceneFile;
 use anyhow::{Result, bail};
@@ -48,6 +48,10 @@ pub struct PreviewCell {
     pub rmse_first_pass: f64,
     /// Relative RMSE with the image's own noise subtracted: its bias part.
     pub rmse_floor: f64,
+    /// The floor's standard error over the pixels (`metrics::relative_rmse_with_error`):
+    /// large where the reference is noisy beside the floor.
+    #[serde(default)]
+    pub rmse_floor_se: Option<f64>,
     pub spp: u32,
     /// (set-up + render seconds, relative RMSE).
     pub curve: Vec<(f64, f64)>,
@@ -220,6 +224,7 @@ impl PreviewJob<'_> {
             _ => vec![],
         };
         let (label, config, rho) = self.labels;
+        let (rmse_floor, rmse_floor_se) = relative_rmse_with_error(&average, self.reference, self.mask, Some(&var));
         let cell = PreviewCell {
             scene: label.into(),
             config: config.into(),
@@ -231,7 +236,8 @@ impl PreviewJob<'_> {
             preview_secs: if runs.is_empty() { first_secs } else { median_secs(&runs) },
             preview_secs_runs: runs,
             rmse_first_pass: t.curve.first().map_or(f64::INFINITY, |p| p.1),
-            rmse_floor: relative_rmse_less(&average, self.reference, self.mask, Some(&var)),
+            rmse_floor,
+            rmse_floor_se: Some(rmse_floor_se),
             spp: self.spp,
             curve: t.curve.iter().map(|&(s, r)| (s + setup_secs, r)).collect(),
         };
@@ -507,12 +513,14 @@ pub fn write_reports(
                 .collect::<Vec<_>>()
                 .join(" ")
         })
+        .col("rmse_floor_se", |c| c.rmse_floor_se.map_or(String::new(), |e| format!("{e:.5}")))
         .render(cells);
     write_bytes_atomically(&out.join("preview.csv"), csv.as_bytes())?;
     let secs = |v: Option<f64>| v.map_or("never".to_string(), |s| format!("{s:.2} s"));
     let mut md = String::from(
         "# nimbus eval --preview: time to preview (5 % relative RMSE against the converged reference)\n\n\
-         Cells: time to preview (set-up included for the previews) / RMSE floor. Prediction: the best k.\n\n\
+         Cells: time to preview (set-up included for the previews) / RMSE floor (+- its standard error over the pixels, \
+         large where the reference is noisy beside the floor). Prediction: the best k.\n\n\
          | scene | config | rho | size | path tracing | prediction | learned preview | octaves (default) | octaves (fitted) | path tracing / learned |\n\
          |---|---|---|---|---|---|---|---|---|---|\n",
     );
@@ -547,8 +555,9 @@ pub fn write_reports(
                     .filter(|_| t == "octaves fitted")
                     .map(|p| format!(", a {:.2} b {:.2} c {:.2}", p[1], p[2], p[3]))
                     .unwrap_or_default();
+                let error = c.rmse_floor_se.map_or(String::new(), |e| format!(" (+- {:.1})", 100.0 * e));
                 format!(
-                    "{}{} / {:.1} %{fit}",
+                    "{}{} / {:.1} %{error}{fit}",
                     secs(c.preview_secs),
                     runs_range(&c.preview_secs_runs),
                     100.0 * c.rmse_floor
