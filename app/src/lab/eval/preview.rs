@@ -50,8 +50,7 @@ pub struct PreviewCell {
     pub rmse_floor: f64,
     /// The floor's standard error over the pixels (`metrics::relative_rmse_with_error`):
     /// large where the reference is noisy beside the floor.
-    #[serde(default)]
-    pub rmse_floor_se: Option<f64>,
+    pub rmse_floor_se: f64,
     pub spp: u32,
     /// (set-up + render seconds, relative RMSE).
     pub curve: Vec<(f64, f64)>,
@@ -67,8 +66,9 @@ const TECHNIQUES: [&str; 3] = ["learned", "octaves", "octaves fitted"];
 const SECOND_RUN_SEED: u64 = 0x5345_434f_4e44; // "SECOND"
 
 /// Part of every preview cache file's name: the preview's sampling and the floor's
-/// measurement as they are now (cells cached by an earlier form are made again).
-const CACHE_FORM: &str = "v3";
+/// measurement as they are now (cells cached by an earlier form, such as one without
+/// the floor's standard error, are made again).
+const CACHE_FORM: &str = "v4";
 
 /// What the preview cells of one configuration share.
 pub struct PreviewJob<'a> {
@@ -237,7 +237,7 @@ impl PreviewJob<'_> {
             preview_secs_runs: runs,
             rmse_first_pass: t.curve.first().map_or(f64::INFINITY, |p| p.1),
             rmse_floor,
-            rmse_floor_se: Some(rmse_floor_se),
+            rmse_floor_se,
             spp: self.spp,
             curve: t.curve.iter().map(|&(s, r)| (s + setup_secs, r)).collect(),
         };
@@ -513,7 +513,7 @@ pub fn write_reports(
                 .collect::<Vec<_>>()
                 .join(" ")
         })
-        .col("rmse_floor_se", |c| c.rmse_floor_se.map_or(String::new(), |e| format!("{e:.5}")))
+        .col("rmse_floor_se", |c| format!("{:.5}", c.rmse_floor_se))
         .render(cells);
     write_bytes_atomically(&out.join("preview.csv"), csv.as_bytes())?;
     let secs = |v: Option<f64>| v.map_or("never".to_string(), |s| format!("{s:.2} s"));
@@ -555,12 +555,12 @@ pub fn write_reports(
                     .filter(|_| t == "octaves fitted")
                     .map(|p| format!(", a {:.2} b {:.2} c {:.2}", p[1], p[2], p[3]))
                     .unwrap_or_default();
-                let error = c.rmse_floor_se.map_or(String::new(), |e| format!(" (+- {:.1})", 100.0 * e));
                 format!(
-                    "{}{} / {:.1} %{error}{fit}",
+                    "{}{} / {:.1} % (+- {:.1}){fit}",
                     secs(c.preview_secs),
                     runs_range(&c.preview_secs_runs),
-                    100.0 * c.rmse_floor
+                    100.0 * c.rmse_floor,
+                    100.0 * c.rmse_floor_se
                 )
             })
         };
