@@ -23,8 +23,8 @@
 //! Parameters ([`Medium::with_majorant_cells`]): `rho` the density scale, per world
 //! unit, finite and >= 0 (sigma_t = rho d); `albedo` in [0, 1] (sigma_s = albedo
 //! sigma_t); `phase` ([`crate::phase`]); `cell_voxels` the majorant cell edge in
-//! voxels, >= 1 (default [`MajorantGrid::default_cell_voxels`]: 8 up to 128^3, the
-//! same world size above). Bad values are
+//! voxels, >= 1 (default [`MajorantGrid::default_cell_voxels`]: about an eighth of the
+//! grid's largest axis). Bad values are
 //! errors naming the parameter.
 
 use crate::grid::{Bounds3, DensityGrid, floor_i32};
@@ -47,20 +47,95 @@ pub struct MajorantGrid {
     min_density: Vec<f32>,
     /// World box covered (the density grid's support).
     bounds: Bounds3,
+    cell_size: Vec3,
     inv_cell_size: Vec3,
+    /// Per cell, 1 + r, with r (at most [`MAX_REACH`]) a radius in cells within which
+    /// every cell's densities lie within this cell's bounds (majorant at most its
+    /// majorant, control at least its control); 0 for an empty cell
+    /// ([`MajorantGrid::local_ball`]).
+    reach: Vec<u8>,
+}
+
+/// The largest radius, in cells, that [`MajorantGrid::local_ball`] looks around a
+/// point: a flight or shadow ray that gets this far goes on by the DDA.
+pub const MAX_REACH: u8 = 8;
+
+/// A ball around a point within which the medium's density lies between
+/// `min_density` and `max_density` (those of the point's majorant cell): a flight or
+/// shadow ray from the point can track the ball as one stretch, without the DDA.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LocalBall {
+    pub radius: f32,
+    pub max_density: f32,
+    pub min_density: f32,
+}
+
+/// Per cell, 1 + a radius r in cells such that every cell within Chebyshev distance r
+/// has its densities within the cell's bounds (0 for an empty cell). An erosion, one
+/// ring per round: a cell of radius r gets r + 1 when each of its 26 neighbours lies
+/// within its bounds and has radius r itself (the neighbours' blocks of radius r,
+/// whose cells lie within the neighbours' bounds and so within the cell's, cover its
+/// block of r + 1). Conservative: a radius can be larger than the one found.
+fn local_reach(dims: UVec3, max_density: &[f32], min_density: &[f32]) -> Vec<u8> {
+    use rayon::prelude::*;
+    let d = dims.as_ivec3();
+    // rad[i] = radius + 1 for every cell, the empty ones included (they bound their
+    // empty neighbours); empty cells get 0 at the end.
+    let mut rad = vec![1u8; max_density.len()];
+    for level in 1..=MAX_REACH {
+        let next: Vec<u8> = (0..rad.len())
+            .into_par_iter()
+            .map(|i| {
+                if rad[i] != level {
+                    return rad[i];
+                }
+                let c = IVec3::new(i as i32 % d.x, (i as i32 / d.x) % d.y, i as i32 / (d.x * d.y));
+                for dz in -1..=1 {
+                    for dy in -1..=1 {
+                        for dx in -1..=1 {
+                            let n = c + IVec3::new(dx, dy, dz);
+                            if n.cmplt(IVec3::ZERO).any() || n.cmpge(d).any() {
+                                return level;
+                            }
+                            let j = (n.x + d.x * (n.y + d.y * n.z)) as usize;
+                            let within = max_density[j] <= max_density[i] && min_density[j] >= min_density[i];
+                            if rad[j] < level || !within {
+                                return level;
+                            }
+                        }
+                    }
+                }
+                level + 1
+            })
+            .collect();
+        let grew = next.iter().zip(&rad).any(|(a, b)| a != b);
+        rad = next;
+        if !grew {
+            break;
+        }
+    }
+    for (r, &m) in rad.iter_mut().zip(max_density) {
+        if m <= 0.0 {
+            *r = 0;
+        }
+    }
+    rad
 }
 
 impl MajorantGrid {
-    /// Default cell edge in voxels (see `nimbus bench render` for the trade-off).
+    /// The smallest default cell edge in voxels, and the step of the default edges
+    /// (the brick edge, so sparse grids build from brick maxima).
     pub const DEFAULT_CELL_VOXELS: u32 = 8;
 
-    /// The default cell edge for a grid: [`Self::DEFAULT_CELL_VOXELS`] up to 128
-    /// voxels per axis, then growing with the grid so the cells keep their world size
-    /// (the same cloud at 1024^3 has as many cells, and as many DDA steps per ray, as at
-    /// 128^3; a multiple of the brick edge, so sparse grids build from brick maxima).
+    /// The default cell edge for a grid: about an eighth of its largest axis in
+    /// multiples of [`Self::DEFAULT_CELL_VOXELS`] (8 voxels at 64^3, 16 at 128^3, 32 at
+    /// 256^3, 128 at 1024^3), so every cloud has about as many cells, and its rays as
+    /// many DDA steps, whatever its resolution. With the trackers' local balls
+    /// ([`MajorantGrid::local_ball`]) coarser cells cost less DDA and give wider
+    /// balls for about the same tightness (`nimbus bench render --compare-cells`).
     pub fn default_cell_voxels(grid: &DensityGrid) -> u32 {
         let n = grid.dims().max_element();
-        Self::DEFAULT_CELL_VOXELS * ((n + 64) / 128).max(1)
+        Self::DEFAULT_CELL_VOXELS * ((n + 32) / 64).max(1)
     }
 
     pub fn new(grid: &DensityGrid, cell_voxels: u32) -> Self {
@@ -89,7 +164,16 @@ impl MajorantGrid {
                 (max, if inside && max > 0.0 { grid.min_in_box(l, h) } else { 0.0 })
             })
             .unzip();
-        MajorantGrid { dims, max_density, min_density, bounds: support, inv_cell_size: cell_size.recip() }
+        let reach = local_reach(dims, &max_density, &min_density);
+        MajorantGrid {
+            dims,
+            max_density,
+            min_density,
+            bounds: support,
+            cell_size,
+            inv_cell_size: cell_size.recip(),
+            reach,
+        }
     }
 
     pub fn dims(&self) -> UVec3 {
@@ -120,6 +204,33 @@ impl MajorantGrid {
         m
     }
 
+    /// The ball around `o` within which the density lies within the bounds of
+    /// `o`'s majorant cell: the block of cells around it that [`local_reach`] found
+    /// (at most [`MAX_REACH`] cells in radius), less the part of `o`'s own cell on the
+    /// far side of it. None outside the grid and in empty cells.
+    #[inline(always)]
+    pub fn local_ball(&self, o: Vec3) -> Option<LocalBall> {
+        let q = (o - self.bounds.min) * self.inv_cell_size;
+        if !(q.cmpge(Vec3::ZERO).all() && q.cmplt(self.dims.as_vec3()).all()) {
+            return None;
+        }
+        let c = q.as_uvec3().min(self.dims - UVec3::ONE);
+        let i = (c.x + self.dims.x * (c.y + self.dims.y * c.z)) as usize;
+        let r = self.reach[i];
+        if r == 0 {
+            return None;
+        }
+        // Distance to the block's faces: the rings beyond its own cell, plus the
+        // nearer face of its own cell on each axis.
+        let f = (q - c.as_vec3()).clamp(Vec3::ZERO, Vec3::ONE);
+        let inner = f.min(Vec3::ONE - f) + Vec3::splat((r - 1) as f32);
+        Some(LocalBall {
+            radius: (inner * self.cell_size).min_element(),
+            max_density: self.max_density[i],
+            min_density: self.min_density[i],
+        })
+    }
+
     #[inline]
     fn cell(&self, c: IVec3) -> f32 {
         self.max_density[self.cell_index(c)]
@@ -142,26 +253,18 @@ impl MajorantGrid {
         let q = (o + d * t0 - self.bounds.min) * self.inv_cell_size;
         let dims = self.dims.as_ivec3();
         let cell = IVec3::new(floor_i32(q.x), floor_i32(q.y), floor_i32(q.z)).clamp(IVec3::ZERO, dims - 1);
-        let dq = d * self.inv_cell_size;
-        let mut step = IVec3::ZERO;
-        let mut next_t = Vec3::splat(f32::INFINITY);
-        let mut delta_t = Vec3::splat(f32::INFINITY);
-        let mut stop = IVec3::ZERO;
-        for a in 0..3 {
-            if dq[a] > 0.0 {
-                step[a] = 1;
-                stop[a] = dims[a];
-                next_t[a] = t0 + (cell[a] as f32 + 1.0 - q[a]) / dq[a];
-                delta_t[a] = 1.0 / dq[a];
-            } else if dq[a] < 0.0 {
-                step[a] = -1;
-                stop[a] = -1;
-                next_t[a] = t0 + (cell[a] as f32 - q[a]) / dq[a];
-                delta_t[a] = -1.0 / dq[a];
-            } else {
-                stop[a] = i32::MIN;
-            }
-        }
+        // Per axis: the ray parameter of the next cell face and the parameter per cell,
+        // from 1 / dq = inv_d times the cell size (no division per axis), branch-free;
+        // an axis the ray does not move along never steps (infinite next face).
+        let inv_dq = inv_d * self.cell_size;
+        let (pos, neg) = (d.cmpgt(Vec3::ZERO), d.cmplt(Vec3::ZERO));
+        let moving = pos | neg;
+        let cellf = cell.as_vec3();
+        let face = Vec3::select(pos, cellf + Vec3::ONE, cellf);
+        let next_t = Vec3::select(moving, Vec3::splat(t0) + (face - q) * inv_dq, Vec3::INFINITY);
+        let delta_t = Vec3::select(moving, inv_dq.abs(), Vec3::INFINITY);
+        let step = IVec3::select(pos, IVec3::ONE, IVec3::select(neg, IVec3::NEG_ONE, IVec3::ZERO));
+        let stop = IVec3::select(pos, dims, IVec3::select(neg, IVec3::NEG_ONE, IVec3::splat(i32::MIN)));
         MajorantIter { grid: self, cell, step, stop, next_t, delta_t, t: t0, t_end: t1, done: false }
     }
 }
@@ -357,6 +460,17 @@ impl Medium {
     /// --compare-control` measures against.
     pub fn without_control(mut self) -> Self {
         self.majorant.min_density.fill(0.0);
+        self.majorant.reach = local_reach(self.majorant.dims, &self.majorant.max_density, &self.majorant.min_density);
+        self
+    }
+
+    /// The same medium tracked without local balls ([`MajorantGrid::local_ball`]):
+    /// every flight and shadow ray walks the majorant cells by the DDA from its
+    /// origin. The same estimates with other random numbers; the baseline `nimbus
+    /// bench render --compare-balls` measures against, and an independent estimator
+    /// for the tests.
+    pub fn without_local_balls(mut self) -> Self {
+        self.majorant.reach.fill(0);
         self
     }
 
@@ -476,39 +590,67 @@ impl Medium {
     /// the same random numbers.
     #[inline]
     pub fn sample_free_flight(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> FreeFlight {
-        for seg in self.majorant.segments(o, d, 0.0, t_max) {
-            let sigma_maj = self.sigma_maj(&seg);
-            if sigma_maj <= 0.0 {
-                continue;
+        let mut start = 0.0;
+        if let Some(ball) = self.majorant.local_ball(o) {
+            // The ball around o is one stretch of the cell's majorant and control,
+            // tracked without the DDA; a flight that reaches its surface goes on from
+            // there (the trackers are memoryless).
+            let reach = ball.radius.min(t_max);
+            if let Some(t) = self.flight_in(o, d, 0.0, reach, ball.max_density, ball.min_density, rng) {
+                return FreeFlight::Collision { t };
             }
-            let sigma_c = self.sigma_min(&seg);
-            let t_control =
-                if sigma_c > 0.0 { seg.t_min + sample_exponential(rng.uniform(), sigma_c) } else { f32::INFINITY };
-            let end = seg.t_max.min(t_control);
-            let sigma_r = sigma_maj - sigma_c;
-            if sigma_r > 0.0 {
-                let mut hit = None;
-                tentative_collisions(seg.t_min, end, sigma_r, rng, |t, rng| {
-                    let sigma_t = self.sigma_t_estimate(o + d * t, rng);
-                    debug_assert!(
-                        sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6,
-                        "majorant {sigma_maj} < sigma_t {sigma_t}"
-                    );
-                    let real = rng.uniform() * sigma_r < sigma_t - sigma_c;
-                    if real {
-                        hit = Some(t);
-                    }
-                    !real
-                });
-                if let Some(t) = hit {
-                    return FreeFlight::Collision { t };
-                }
+            if reach >= t_max {
+                return FreeFlight::Escaped;
             }
-            if t_control < seg.t_max {
-                return FreeFlight::Collision { t: t_control };
+            start = reach;
+        }
+        for seg in self.majorant.segments(o, d, start, t_max) {
+            if let Some(t) = self.flight_in(o, d, seg.t_min, seg.t_max, seg.max_density, seg.min_density, rng) {
+                return FreeFlight::Collision { t };
             }
         }
         FreeFlight::Escaped
+    }
+
+    /// Decomposition tracking over the stretch [t0, t1] of `o + t d`, whose densities
+    /// lie between `min_density` and `max_density`: the distance of the collision in
+    /// it, if any.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn flight_in(
+        &self,
+        o: Vec3,
+        d: Vec3,
+        t0: f32,
+        t1: f32,
+        max_density: f32,
+        min_density: f32,
+        rng: &mut Rng,
+    ) -> Option<f32> {
+        let sigma_maj = (self.rho * max_density).min(self.sigma_cap);
+        if sigma_maj <= 0.0 {
+            return None;
+        }
+        let sigma_c = (self.rho * min_density).min(self.sigma_cap);
+        let t_control = if sigma_c > 0.0 { t0 + sample_exponential(rng.uniform(), sigma_c) } else { f32::INFINITY };
+        let end = t1.min(t_control);
+        let sigma_r = sigma_maj - sigma_c;
+        if sigma_r > 0.0 {
+            let mut hit = None;
+            tentative_collisions(t0, end, sigma_r, rng, |t, rng| {
+                let sigma_t = self.sigma_t_estimate(o + d * t, rng);
+                debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
+                let real = rng.uniform() * sigma_r < sigma_t - sigma_c;
+                if real {
+                    hit = Some(t);
+                }
+                !real
+            });
+            if hit.is_some() {
+                return hit;
+            }
+        }
+        (t_control < t1).then_some(t_control)
     }
 
     /// One step of a random walk: at a scattering vertex `x` whose path came from
@@ -536,38 +678,69 @@ impl Medium {
     #[inline]
     pub fn transmittance_ratio(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> f32 {
         let mut tr = 1.0f32;
-        for seg in self.majorant.segments(o, d, 0.0, t_max) {
-            let sigma_maj = self.sigma_maj(&seg);
-            if sigma_maj <= 0.0 {
-                continue;
+        let mut start = 0.0;
+        if let Some(ball) = self.majorant.local_ball(o) {
+            // The ball around o as one stretch, without the DDA; the rest of the ray
+            // by its segments.
+            let reach = ball.radius.min(t_max);
+            if !self.ratio_in(o, d, 0.0, reach, ball.max_density, ball.min_density, &mut tr, rng) {
+                return 0.0;
             }
-            let sigma_c = self.sigma_min(&seg);
-            if sigma_c > 0.0 {
-                tr *= (-sigma_c * (seg.t_max - seg.t_min)).exp();
-                // Roulette with survival tr / threshold: a product far below the
-                // threshold (a long homogeneous stretch) ends here at once.
-                if tr < RATIO_TRACKING_RR_THRESHOLD {
-                    if rng.uniform() * RATIO_TRACKING_RR_THRESHOLD >= tr {
-                        return 0.0;
-                    }
-                    tr = RATIO_TRACKING_RR_THRESHOLD;
-                }
+            if reach >= t_max {
+                return tr;
             }
-            let sigma_r = sigma_maj - sigma_c;
-            if sigma_r <= 0.0 {
-                continue;
-            }
-            let alive = tentative_collisions(seg.t_min, seg.t_max, sigma_r, rng, |t, rng| {
-                let sigma_t = self.sigma_t_estimate(o + d * t, rng);
-                debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
-                tr *= 1.0 - (sigma_t - sigma_c) / sigma_r;
-                roulette_product(&mut tr, rng)
-            });
-            if !alive {
+            start = reach;
+        }
+        for seg in self.majorant.segments(o, d, start, t_max) {
+            if !self.ratio_in(o, d, seg.t_min, seg.t_max, seg.max_density, seg.min_density, &mut tr, rng) {
                 return 0.0;
             }
         }
         tr
+    }
+
+    /// Residual ratio tracking over the stretch [t0, t1] of `o + t d`, whose
+    /// densities lie between `min_density` and `max_density`: multiplies `tr` by its
+    /// transmittance estimate; false when the product ended (0, or lost at roulette).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn ratio_in(
+        &self,
+        o: Vec3,
+        d: Vec3,
+        t0: f32,
+        t1: f32,
+        max_density: f32,
+        min_density: f32,
+        tr: &mut f32,
+        rng: &mut Rng,
+    ) -> bool {
+        let sigma_maj = (self.rho * max_density).min(self.sigma_cap);
+        if sigma_maj <= 0.0 {
+            return true;
+        }
+        let sigma_c = (self.rho * min_density).min(self.sigma_cap);
+        if sigma_c > 0.0 {
+            *tr *= (-sigma_c * (t1 - t0)).exp();
+            // Roulette with survival tr / threshold: a product far below the
+            // threshold (a long homogeneous stretch) ends here at once.
+            if *tr < RATIO_TRACKING_RR_THRESHOLD {
+                if rng.uniform() * RATIO_TRACKING_RR_THRESHOLD >= *tr {
+                    return false;
+                }
+                *tr = RATIO_TRACKING_RR_THRESHOLD;
+            }
+        }
+        let sigma_r = sigma_maj - sigma_c;
+        if sigma_r <= 0.0 {
+            return true;
+        }
+        tentative_collisions(t0, t1, sigma_r, rng, |t, rng| {
+            let sigma_t = self.sigma_t_estimate(o + d * t, rng);
+            debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
+            *tr *= 1.0 - (sigma_t - sigma_c) / sigma_r;
+            roulette_product(tr, rng)
+        })
     }
 
     /// The first collision along a ray as a weighted sample, with no binary choice
@@ -834,6 +1007,73 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// Every point within a local ball has its density, and every voxel a one-voxel
+    /// lookup can read there, within the ball's bounds; the balls reach beyond their
+    /// own cells where the neighbours allow (a sphere's interior and the shell around
+    /// it), and none is given beyond the majorant cells or in an empty cell.
+    #[test]
+    fn local_balls_bound_the_density_within_them() {
+        let unit = Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5));
+        let sphere =
+            DensityGrid::from_fn(UVec3::splat(48), unit, |p| if p.length() < 0.4 { 1.0 } else { 0.0 }).unwrap();
+        let blocky = DensityGrid::from_fn(UVec3::splat(40), unit, |p| {
+            let b = ((p + 0.5) * 5.0).floor();
+            0.2 + 0.15 * (b.x + 2.0 * b.y + 3.0 * b.z).rem_euclid(5.0)
+        })
+        .unwrap();
+        let sparse_sphere = sphere.to_sparse();
+        for (name, grid) in
+            [("random", random_grid(23, 9)), ("sphere", sphere), ("sparse sphere", sparse_sphere), ("blocky", blocky)]
+        {
+            for cells in [4u32, 8] {
+                let m = MajorantGrid::new(&grid, cells);
+                let mut rng = Rng::new(41, cells as u64, 0);
+                let (mut balls, mut wide) = (0, 0);
+                for _ in 0..4000 {
+                    let o = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 1.2 - 0.6;
+                    let Some(ball) = m.local_ball(o) else {
+                        continue;
+                    };
+                    balls += 1;
+                    assert!(ball.max_density > 0.0 && ball.min_density <= ball.max_density);
+                    if ball.radius > cells as f32 * grid.voxel_size().x {
+                        wide += 1;
+                    }
+                    for _ in 0..16 {
+                        let dir = crate::sampling::sample_uniform_sphere(rng.uniform2());
+                        let p = o + dir * ball.radius * rng.uniform();
+                        let v = grid.lookup(p);
+                        let tol = 1e-6 * ball.max_density.max(1.0);
+                        assert!(
+                            v <= ball.max_density + tol && v >= ball.min_density - tol,
+                            "{name}, cells {cells}: {v} at {p} outside [{}, {}]",
+                            ball.min_density,
+                            ball.max_density
+                        );
+                        let bits = ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+                        let corner = grid.lookup_stochastic(p, bits);
+                        assert!(
+                            corner <= ball.max_density && corner >= ball.min_density,
+                            "{name}, cells {cells}: corner {corner} at {p}"
+                        );
+                    }
+                }
+                assert!(balls > 500, "{name}, cells {cells}: {balls} balls");
+                if name.contains("sphere") {
+                    assert!(wide > balls / 4, "{name}, cells {cells}: {wide} of {balls} balls wider than a cell");
+                }
+            }
+        }
+        // Outside the grid and in an empty corner: none.
+        let m = MajorantGrid::new(&random_grid(16, 2), 4);
+        assert_eq!(m.local_ball(Vec3::splat(0.9)), None);
+        assert_eq!(m.local_ball(Vec3::splat(-0.6)), None);
+        assert_eq!(m.local_ball(Vec3::splat(f32::NAN)), None);
+        let empty = DensityGrid::from_fn(UVec3::splat(32), unit, |p| if p.x < 0.0 { 1.0 } else { 0.0 }).unwrap();
+        assert_eq!(MajorantGrid::new(&empty, 4).local_ball(Vec3::new(0.4, 0.0, 0.0)), None);
+        assert!(MajorantGrid::new(&empty, 4).local_ball(Vec3::new(-0.3, 0.0, 0.0)).is_some());
     }
 
     /// Sparse storage builds the same majorants as dense storage, bit for bit.

@@ -66,14 +66,12 @@ fn cases() -> Vec<Case> {
         let y1 = (o.y + d.y * t_max) as f64;
         let integral_dy = a0 as f64 * (y1 - y0) + 0.5 * b0 as f64 * (y1 * y1 - y0 * y0);
         let tau = rho as f64 * integral_dy / d.y as f64;
-        // Tight (default) and loose (one cell for the whole grid) majorants: the loose
+        // Tight (cells of 8 voxels) and loose (one cell for the whole grid) majorants: the loose
         // one makes ratio tracking multiply many factors below 1 and play roulette.
         let sparse_ramp = Arc::new(ramp.to_sparse());
-        for (name, grid, cells) in [
-            ("ramp", &ramp, engine::medium::MajorantGrid::DEFAULT_CELL_VOXELS),
-            ("ramp, loose majorant", &ramp, 1024),
-            ("ramp, sparse", &sparse_ramp, engine::medium::MajorantGrid::DEFAULT_CELL_VOXELS),
-        ] {
+        for (name, grid, cells) in
+            [("ramp", &ramp, 8), ("ramp, loose majorant", &ramp, 1024), ("ramp, sparse", &sparse_ramp, 8)]
+        {
             out.push(Case {
                 name,
                 medium: Medium::with_majorant_cells(grid.clone(), rho, 1.0, PhaseFunction::Isotropic, cells).unwrap(),
@@ -109,6 +107,18 @@ fn fine_ramp_cases_have_a_control_density() {
         let covered: f32 =
             segs.iter().filter(|s| s.min_density > 0.0).map(|s| s.t_max - s.t_min).sum::<f32>() / c.t_max;
         assert!(covered > 0.5, "{}: {covered} of the ray has a control density", c.name);
+    }
+}
+
+/// The cases that start inside the grid start in a local ball, so the trackers' first
+/// stretch, tracked without the DDA, is what their closed forms check.
+#[test]
+fn cases_inside_the_grid_start_in_a_local_ball() {
+    let inside: Vec<_> = cases().into_iter().filter(|c| c.name.contains("ramp")).collect();
+    assert_eq!(inside.len(), 8);
+    for c in inside {
+        let ball = c.medium.majorant().local_ball(c.o);
+        assert!(ball.is_some_and(|b| b.radius > 0.0), "{}: {ball:?}", c.name);
     }
 }
 
@@ -240,6 +250,10 @@ fn free_flight_distances_are_exponential() {
     // From inside the interior, straight up; the taper starts 2 - vs/2 above o.
     let o = Vec3::new(0.0, -1.9, 0.0);
     let l = 3.8f64; // stays in the constant region
+    // o lies in a local ball (its cell reaches past the grid, so it is tracked against
+    // a control of 0), the flight's first stretch without the DDA.
+    let ball = medium.majorant().local_ball(o).expect("a local ball");
+    assert!(ball.radius > 0.0, "{ball:?}");
     let bins = 50usize;
     let p_beyond = (-(rho as f64) * l).exp();
     let mut obs = vec![0.0f64; bins + 1];

@@ -52,6 +52,12 @@ use glam::Vec3;
 /// loses up to 40 % toplit, where the phase toward the sun is small.
 const GUIDE_FLOOR: f32 = 0.1;
 
+/// The phase value below which next event estimation toward the sun plays Russian
+/// roulette ([`next_event`]): the isotropic phase, 1 / (4 pi). Forward-peaked media
+/// (g = 0.85) have most directions below it, and their shadow rays carry little; an
+/// isotropic medium never rouletted.
+const NEE_PHASE_FLOOR: f32 = crate::sampling::INV_4PI;
+
 /// Radiance arriving at `o` from direction `-d` (along the ray o + t d), split by
 /// scattering order: order 0 to `direct`, orders 1 .. k-1 to `low`, >= k to `high`.
 #[inline]
@@ -114,12 +120,24 @@ fn next_event(
     add: &mut impl FnMut(u32, Vec3),
 ) {
     let wi = sun.sample_wi(rng.uniform2());
-    let f = beta * scene.medium.phase().eval(wo, wi);
-    if f > 0.0 {
-        let tr = scene.medium.transmittance_ratio(x, wi, f32::INFINITY, rng);
-        if tr > 0.0 {
-            add(order, sun.radiance() * (f * tr));
+    let phase = scene.medium.phase().eval(wo, wi);
+    if !(beta > 0.0 && phase > 0.0) {
+        return;
+    }
+    // Russian roulette on the shadow ray by the phase toward the sun: below the
+    // isotropic phase it is cast with probability phase / floor and weighted by the
+    // inverse, so every shadow ray cast carries at least the isotropic phase's weight.
+    let weight = if phase >= NEE_PHASE_FLOOR {
+        phase
+    } else {
+        if rng.uniform() * NEE_PHASE_FLOOR >= phase {
+            return;
         }
+        NEE_PHASE_FLOOR
+    };
+    let tr = scene.medium.transmittance_ratio(x, wi, f32::INFINITY, rng);
+    if tr > 0.0 {
+        add(order, sun.radiance() * (beta * weight * tr));
     }
 }
 

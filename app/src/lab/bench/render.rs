@@ -43,6 +43,11 @@ pub struct BenchRenderArgs {
     /// (plain delta and ratio tracking: the same estimate, other variance and cost).
     #[arg(long)]
     pub compare_control: bool,
+    /// Also render the first configuration without the trackers' local balls (every
+    /// flight and shadow ray walks the majorant cells by the DDA from its origin: the
+    /// same estimate, other cost).
+    #[arg(long)]
+    pub compare_balls: bool,
     /// Also render every configuration with trilinear lookups in the trackers (eight
     /// voxels per tentative collision instead of one corner drawn by its weight: the
     /// same estimate, other variance and cost).
@@ -241,6 +246,9 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                 let mut variants: Vec<(&str, engine::Medium, Option<(&str, serde_json::Value)>)> = Vec::new();
                 if configs.is_empty() && args.compare_control {
                     variants.push((" no control", medium.clone().without_control(), Some(("control", false.into()))));
+                }
+                if configs.is_empty() && args.compare_balls {
+                    variants.push((" no balls", medium.clone().without_local_balls(), Some(("balls", false.into()))));
                 }
                 if args.compare_lookups {
                     let tag = Some(("lookups", "trilinear".into()));
