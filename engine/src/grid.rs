@@ -92,8 +92,9 @@ struct Bricks {
     bdims: UVec3,
     table: Vec<u32>,
     pool: Vec<f32>,
-    /// The largest value of each slot.
-    slot_max: Vec<f32>,
+    /// The smallest and largest value of each slot (over the voxels inside the grid),
+    /// side by side so that one read gives both.
+    slot_range: Vec<[f32; 2]>,
     /// Slots whose values are all equal (0 is the zero brick).
     constant: Vec<bool>,
 }
@@ -339,7 +340,7 @@ impl DensityGrid {
     /// The largest voxel value in brick `b`.
     pub fn brick_max(&self, b: UVec3) -> f32 {
         match &self.storage {
-            Storage::Sparse(br) => br.slot_max[br.brick_slot(b)],
+            Storage::Sparse(br) => br.slot_range[br.brick_slot(b)][1],
             Storage::Dense(_) => self.max_in_box(b * BRICK, b * BRICK + (BRICK - 1)),
         }
     }
@@ -362,7 +363,7 @@ impl DensityGrid {
                 for bx in b0.x..=b1.x {
                     let b = UVec3::new(bx, by, bz);
                     let slot = br.brick_slot(b);
-                    let smax = br.slot_max[slot];
+                    let smax = br.slot_range[slot][1];
                     if smax <= m {
                         continue;
                     }
@@ -400,7 +401,7 @@ impl DensityGrid {
                     let b = UVec3::new(bx, by, bz);
                     let slot = br.brick_slot(b);
                     if br.constant[slot] {
-                        m = m.min(br.slot_max[slot]);
+                        m = m.min(br.slot_range[slot][0]);
                         continue;
                     }
                     let blo = b * BRICK;
@@ -550,7 +551,7 @@ impl DensityGrid {
                 if b.constant[slot] {
                     // Eight equal corners: the interpolation returns that value
                     // exactly (c + f (c - c) = c), so it is skipped.
-                    return b.slot_max[slot];
+                    return b.slot_range[slot][1];
                 }
                 Some((
                     b.pool.as_slice(),
@@ -630,6 +631,38 @@ impl DensityGrid {
         self.voxel_or_zero(x + upper(bits, f.x), y + upper(bits >> 21, f.y), z + upper(bits >> 42, f.z))
     }
 
+    /// `pred(v)` for the value v that [`DensityGrid::lookup_stochastic`] reads with the
+    /// same `p` and `bits`, where `pred` is monotone (false up to some value, true
+    /// above it). A sparse grid first asks it of the drawn voxel's brick bounds and
+    /// reads the voxel only where they disagree: in a big pool that read is a miss to
+    /// memory, and a tracker's acceptance test, which is such a predicate, is mostly
+    /// settled by the bounds. The answer is `pred(lookup_stochastic(p, bits))`'s.
+    #[inline(always)]
+    pub fn stochastic_test(&self, p: Vec3, bits: u64, pred: impl Fn(f32) -> bool) -> bool {
+        let Some((x, y, z, f)) = self.stencil(p) else { return pred(0.0) };
+        const SCALE: f32 = 1.0 / (1u32 << 21) as f32;
+        let upper = |r: u64, f: f32| ((r & 0x1F_FFFF) as f32 * SCALE < f) as i32;
+        let (x, y, z) = (x + upper(bits, f.x), y + upper(bits >> 21, f.y), z + upper(bits >> 42, f.z));
+        if x < 0 || y < 0 || z < 0 || x >= self.dims.x as i32 || y >= self.dims.y as i32 || z >= self.dims.z as i32 {
+            return pred(0.0);
+        }
+        let (x, y, z) = (x as u32, y as u32, z as u32);
+        match &self.storage {
+            Storage::Dense(_) => pred(self.voxel(x, y, z)),
+            Storage::Sparse(b) => {
+                let slot = b.slot_of(x, y, z);
+                let [lo, hi] = b.slot_range[slot];
+                // One branch, taken the same way whenever the bounds agree.
+                let (at_lo, at_hi) = (pred(lo), pred(hi));
+                if at_lo == at_hi {
+                    return at_lo;
+                }
+                let m = BRICK - 1;
+                pred(b.pool[slot * BRICK_VOXELS + ((x & m) + BRICK * ((y & m) + BRICK * (z & m))) as usize])
+            }
+        }
+    }
+
     /// The largest value on the grid's outer layer of voxels: 0 means the cloud does not
     /// touch its box (nothing is cut off at the bounds).
     pub fn max_on_boundary(&self) -> f32 {
@@ -653,7 +686,7 @@ impl DensityGrid {
         match &self.storage {
             Storage::Dense(d) => d.len() * std::mem::size_of::<f32>(),
             Storage::Sparse(b) => {
-                (b.table.len() + b.pool.len() + b.slot_max.len()) * std::mem::size_of::<f32>() + b.constant.len()
+                (b.table.len() + b.pool.len() + 2 * b.slot_range.len()) * std::mem::size_of::<f32>() + b.constant.len()
             }
         }
     }
@@ -679,7 +712,7 @@ impl SparseBuilder {
             bdims,
             table: vec![0; bdims.x as usize * bdims.y as usize * bdims.z as usize],
             pool: vec![0.0; BRICK_VOXELS],
-            slot_max: vec![0.0],
+            slot_range: vec![[0.0, 0.0]],
             constant: vec![true],
         };
         let mut constants = std::collections::HashMap::new();
@@ -697,10 +730,10 @@ impl SparseBuilder {
         if let Some(&s) = self.constants.get(&v.to_bits()) {
             return s;
         }
-        let s = self.bricks.slot_max.len() as u32;
+        let s = self.bricks.slot_range.len() as u32;
         self.reserve_slot();
         self.bricks.pool.extend(std::iter::repeat_n(v, BRICK_VOXELS));
-        self.bricks.slot_max.push(v);
+        self.bricks.slot_range.push([v, v]);
         self.bricks.constant.push(true);
         self.constants.insert(v.to_bits(), s);
         s
@@ -743,6 +776,7 @@ impl SparseBuilder {
         let mut first = None;
         let mut uniform = true;
         let mut m = 0.0f32;
+        let mut least = f32::INFINITY;
         let mut clean = [0.0f32; BRICK_VOXELS];
         for z in lo.z..hi.z {
             for y in lo.y..hi.y {
@@ -752,6 +786,7 @@ impl SparseBuilder {
                     check_value(x, y, z, v)?;
                     clean[i] = v;
                     m = m.max(v);
+                    least = least.min(v);
                     match first {
                         None => first = Some(v),
                         Some(f) => uniform &= f == v,
@@ -764,10 +799,10 @@ impl SparseBuilder {
         let slot = if uniform && (whole || first == Some(0.0)) {
             self.constant_slot(first.unwrap_or(0.0))
         } else {
-            let s = self.bricks.slot_max.len() as u32;
+            let s = self.bricks.slot_range.len() as u32;
             self.reserve_slot();
             self.bricks.pool.extend_from_slice(&clean);
-            self.bricks.slot_max.push(m);
+            self.bricks.slot_range.push([least, m]);
             self.bricks.constant.push(false);
             s
         };
@@ -799,16 +834,19 @@ impl SparseBuilder {
                     }
                 }
             }
-            slot = self.bricks.slot_max.len();
+            slot = self.bricks.slot_range.len();
             self.reserve_slot();
             self.bricks.pool.extend_from_slice(&vals);
-            self.bricks.slot_max.push(old);
+            self.bricks.slot_range.push([old, old]);
             self.bricks.constant.push(false);
             self.bricks.table[bi] = slot as u32;
         }
         let m = BRICK - 1;
         self.bricks.pool[slot * BRICK_VOXELS + ((x & m) + BRICK * ((y & m) + BRICK * (z & m))) as usize] = v;
-        self.bricks.slot_max[slot] = self.bricks.slot_max[slot].max(v);
+        // Bounds, not the exact extremes: a value written over another leaves them
+        // wider than the brick's values, never narrower.
+        let r = &mut self.bricks.slot_range[slot];
+        *r = [r[0].min(v), r[1].max(v)];
         Ok(())
     }
 
@@ -848,7 +886,7 @@ impl SparseBuilder {
     }
 
     pub fn finish(self) -> Result<DensityGrid, GridError> {
-        let max_value = self.bricks.table.iter().map(|&s| self.bricks.slot_max[s as usize]).fold(0.0f32, f32::max);
+        let max_value = self.bricks.table.iter().map(|&s| self.bricks.slot_range[s as usize][1]).fold(0.0f32, f32::max);
         Ok(DensityGrid {
             dims: self.dims,
             storage: Storage::Sparse(self.bricks),
@@ -1011,6 +1049,69 @@ mod tests {
         DensityGrid::new(dims, data, Vec3::new(-1.0, 0.5, 2.0), Vec3::new(0.1, 0.07, 0.05)).unwrap()
     }
 
+    /// `stochastic_test` answers a monotone predicate (a threshold) as the predicate of
+    /// the voxel `lookup_stochastic` draws, on dense and sparse storage, whether the
+    /// brick bounds settle it or the voxel is read: on a smooth ramp (narrow bounds,
+    /// mostly settled), the patchy grid (wide ones) and a built grid whose voxels were
+    /// overwritten with lower and higher values (bounds wider than the values). Every
+    /// stored voxel lies within its slot's bounds.
+    #[test]
+    fn stochastic_test_answers_as_the_drawn_voxel() {
+        let dims = UVec3::new(29, 21, 35);
+        let ramp: Vec<f32> = (0..(dims.x * dims.y * dims.z) as usize)
+            .map(|i| {
+                let (x, y, z) = unflatten(i, dims);
+                0.03 * x as f32 + 0.01 * y as f32
+            })
+            .collect();
+        let ramp = DensityGrid::new(dims, ramp, Vec3::ZERO, Vec3::splat(0.1)).unwrap();
+        let mut built = SparseBuilder::new(dims, Vec3::ZERO, Vec3::splat(0.1)).unwrap();
+        built.fill(UVec3::new(0, 0, 0), UVec3::new(20, 20, 20), 0.6).unwrap();
+        built.fill(UVec3::new(3, 3, 3), UVec3::new(12, 12, 12), 0.2).unwrap();
+        for i in 0..400u32 {
+            built.put(i % 29, (i * 7) % 21, (i * 13) % 35, (i % 5) as f32 * 0.3).unwrap();
+        }
+        let built = built.finish().unwrap();
+        let patchy = patchy(dims, 5);
+        let grids = [ramp.to_sparse(), ramp, patchy.to_sparse(), patchy, built];
+        let mut rng = crate::Rng::new(6, 0, 0);
+        let (mut settled, mut read) = (0u32, 0u32);
+        for (gi, g) in grids.iter().enumerate() {
+            if let Storage::Sparse(b) = &g.storage {
+                for z in 0..dims.z {
+                    for y in 0..dims.y {
+                        for x in 0..dims.x {
+                            let [lo, hi] = b.slot_range[b.slot_of(x, y, z)];
+                            let v = g.voxel(x, y, z);
+                            assert!(lo <= v && v <= hi, "grid {gi} ({x}, {y}, {z}): {v} outside [{lo}, {hi}]");
+                        }
+                    }
+                }
+            }
+            let sb = g.support_bounds();
+            for _ in 0..100_000 {
+                let t = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 1.2 - 0.1;
+                let p = sb.min + t * sb.extent();
+                let bits = ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+                let v = g.lookup_stochastic(p, bits);
+                let threshold = rng.uniform() * 1.3 * g.max_value();
+                let reads = std::cell::Cell::new(0u32);
+                let strict = g.stochastic_test(p, bits, |x| {
+                    reads.set(reads.get() + 1);
+                    threshold < x
+                });
+                assert_eq!(strict, threshold < v, "grid {gi} at {p}: {v} against {threshold}");
+                assert_eq!(g.stochastic_test(p, bits, |x| threshold <= x), threshold <= v, "grid {gi} at {p}");
+                if gi == 0 {
+                    if reads.get() < 3 { settled += 1 } else { read += 1 }
+                }
+            }
+        }
+        // A brick of the ramp spans at most 0.28 of values, the thresholds 1.35: about
+        // four tests in five end at the bounds.
+        assert!(settled > 2 * read, "{settled} settled, {read} read");
+    }
+
     /// Sparse storage answers every voxel and every trilinear lookup (inside bricks,
     /// across brick faces, at the grid's faces and outside) with the dense grid's
     /// values bit for bit, and shares one slot among the constant bricks.
@@ -1049,7 +1150,7 @@ mod tests {
             // 2 x 2 x 2 bricks of 0.75 (z 16..32) share one slot.
             let shared = b.table.iter().filter(|&&s| b.constant[s as usize] && s != 0).count();
             assert_eq!(shared, 8);
-            assert_eq!(distinct.len(), b.slot_max.len());
+            assert_eq!(distinct.len(), b.slot_range.len());
         }
     }
 

@@ -70,6 +70,15 @@ pub struct LocalBall {
     pub min_density: f32,
 }
 
+impl LocalBall {
+    /// The stretch [0, reach] of a ray from the ball's centre (reach at most the
+    /// radius), as a majorant segment with the ball's bounds.
+    #[inline(always)]
+    pub fn stretch(&self, reach: f32) -> MajorantSegment {
+        MajorantSegment { t_min: 0.0, t_max: reach, max_density: self.max_density, min_density: self.min_density }
+    }
+}
+
 /// Per cell, 1 + a radius r in cells such that every cell within Chebyshev distance r
 /// has its densities within the cell's bounds (0 for an empty cell). An erosion, one
 /// ring per round: a cell of radius r gets r + 1 when each of its 26 neighbours lies
@@ -255,10 +264,11 @@ impl MajorantGrid {
         let cell = IVec3::new(floor_i32(q.x), floor_i32(q.y), floor_i32(q.z)).clamp(IVec3::ZERO, dims - 1);
         // Per axis: the ray parameter of the next cell face and the parameter per cell,
         // from 1 / dq = inv_d times the cell size (no division per axis), branch-free;
-        // an axis the ray does not move along never steps (infinite next face).
+        // an axis the ray does not move along never steps (infinite next face), nor one
+        // it moves along so slowly (a subnormal component) that 1 / dq overflows.
         let inv_dq = inv_d * self.cell_size;
         let (pos, neg) = (d.cmpgt(Vec3::ZERO), d.cmplt(Vec3::ZERO));
-        let moving = pos | neg;
+        let moving = (pos | neg) & inv_dq.is_finite_mask();
         let cellf = cell.as_vec3();
         let face = Vec3::select(pos, cellf + Vec3::ONE, cellf);
         let next_t = Vec3::select(moving, Vec3::splat(t0) + (face - q) * inv_dq, Vec3::INFINITY);
@@ -410,9 +420,21 @@ pub struct Medium {
     /// (rho times the grid's largest value above it), where sigma_t is not linear in
     /// the voxels' values.
     one_voxel: bool,
+    /// Free flights settle a tentative collision's test from the drawn voxel's brick
+    /// bounds before reading the voxel ([`DensityGrid::stochastic_test`]): on for
+    /// sparse grids bigger than [`BRICK_BOUNDS_MIN_BYTES`], whose reads miss the
+    /// caches; off for smaller ones, where the read is cheaper than the extra test.
+    brick_bounds: bool,
     albedo: f32,
     phase: PhaseFunction,
 }
+
+/// The grid size (values and table) from which free flights test brick bounds
+/// before reading a voxel: a few times the last-level cache of a desktop processor,
+/// past which most reads in a cloud's varying shell go to memory. Measured with
+/// `nimbus bench render --compare-resolutions 256,512,1024 --compare-bounds`
+/// (docs/benchmarks.md).
+pub const BRICK_BOUNDS_MIN_BYTES: usize = 32 << 20;
 
 /// Transmittance below which ratio tracking plays Russian roulette (unbiased).
 const RATIO_TRACKING_RR_THRESHOLD: f32 = 0.1;
@@ -452,7 +474,8 @@ impl Medium {
         let majorant = MajorantGrid::new(&grid, cell_voxels);
         let sigma_cap = MAX_TAU_PER_VOXEL / grid.voxel_size().min_element();
         let one_voxel = rho * grid.max_value() <= sigma_cap;
-        Ok(Medium { grid, majorant, rho, albedo, phase, sigma_cap, one_voxel })
+        let brick_bounds = grid.is_sparse() && grid.memory_bytes() >= BRICK_BOUNDS_MIN_BYTES;
+        Ok(Medium { grid, majorant, rho, albedo, phase, sigma_cap, one_voxel, brick_bounds })
     }
 
     /// The same medium tracked without a control density (every cell's minimum set to
@@ -460,7 +483,11 @@ impl Medium {
     /// --compare-control` measures against.
     pub fn without_control(mut self) -> Self {
         self.majorant.min_density.fill(0.0);
-        self.majorant.reach = local_reach(self.majorant.dims, &self.majorant.max_density, &self.majorant.min_density);
+        // New bounds, new balls (unless they were turned off: all radii 0 stay 0).
+        if self.majorant.reach.iter().any(|&r| r > 0) {
+            self.majorant.reach =
+                local_reach(self.majorant.dims, &self.majorant.max_density, &self.majorant.min_density);
+        }
         self
     }
 
@@ -480,6 +507,20 @@ impl Medium {
     pub fn with_trilinear_lookups(mut self) -> Self {
         self.one_voxel = false;
         self
+    }
+
+    /// The same medium with free flights' brick-bounds test on or off (the default
+    /// follows the grid's size, [`BRICK_BOUNDS_MIN_BYTES`]): the same random numbers
+    /// and the same images bit for bit, other cost; `nimbus bench render
+    /// --compare-bounds` measures both. Dense grids have no bricks and ignore it.
+    pub fn with_brick_bounds(mut self, on: bool) -> Self {
+        self.brick_bounds = on;
+        self
+    }
+
+    /// Whether free flights test brick bounds before reading a voxel.
+    pub fn uses_brick_bounds(&self) -> bool {
+        self.brick_bounds
     }
 
     pub fn grid(&self) -> &Arc<DensityGrid> {
@@ -519,6 +560,37 @@ impl Medium {
             self.rho * self.grid.lookup_stochastic(p, bits)
         } else {
             self.sigma_t(p)
+        }
+    }
+
+    /// Delta tracking's choice at a tentative collision at `p` of a residual tracked at
+    /// rate `sigma_r` above the control `sigma_c` (majorant `sigma_maj`): real with
+    /// probability (sigma_t - sigma_c) / sigma_r, for the one-voxel estimate of
+    /// sigma_t. The same random numbers and the same answer as comparing a uniform
+    /// with [`Medium::sigma_t_estimate`]; the test is monotone in the voxel's value, so
+    /// with `BOUNDS` a sparse grid settles most of them from the voxel's brick bounds
+    /// without reading the voxel ([`DensityGrid::stochastic_test`]).
+    #[inline(always)]
+    fn collision_is_real<const BOUNDS: bool>(
+        &self,
+        p: Vec3,
+        sigma_c: f32,
+        sigma_r: f32,
+        sigma_maj: f32,
+        rng: &mut Rng,
+    ) -> bool {
+        if BOUNDS && self.one_voxel {
+            let bits = ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+            let x = rng.uniform() * sigma_r;
+            debug_assert!({
+                let sigma_t = self.rho * self.grid.lookup_stochastic(p, bits);
+                sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6
+            });
+            self.grid.stochastic_test(p, bits, |v| x < self.rho * v - sigma_c)
+        } else {
+            let sigma_t = self.sigma_t_estimate(p, rng);
+            debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
+            rng.uniform() * sigma_r < sigma_t - sigma_c
         }
     }
 
@@ -590,13 +662,25 @@ impl Medium {
     /// the same random numbers.
     #[inline]
     pub fn sample_free_flight(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> FreeFlight {
+        // Two instances of the tracker, chosen once per flight: the brick-bounds test
+        // inlined where it pays (big grids), and absent from the loop where it does not.
+        if self.brick_bounds {
+            self.free_flight::<true>(o, d, t_max, rng)
+        } else {
+            self.free_flight::<false>(o, d, t_max, rng)
+        }
+    }
+
+    /// [`Medium::sample_free_flight`], with the brick-bounds test (`BOUNDS`) or without.
+    #[inline(always)]
+    fn free_flight<const BOUNDS: bool>(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> FreeFlight {
         let mut start = 0.0;
         if let Some(ball) = self.majorant.local_ball(o) {
             // The ball around o is one stretch of the cell's majorant and control,
             // tracked without the DDA; a flight that reaches its surface goes on from
             // there (the trackers are memoryless).
             let reach = ball.radius.min(t_max);
-            if let Some(t) = self.flight_in(o, d, 0.0, reach, ball.max_density, ball.min_density, rng) {
+            if let Some(t) = self.flight_in::<BOUNDS>(o, d, &ball.stretch(reach), rng) {
                 return FreeFlight::Collision { t };
             }
             if reach >= t_max {
@@ -605,42 +689,30 @@ impl Medium {
             start = reach;
         }
         for seg in self.majorant.segments(o, d, start, t_max) {
-            if let Some(t) = self.flight_in(o, d, seg.t_min, seg.t_max, seg.max_density, seg.min_density, rng) {
+            if let Some(t) = self.flight_in::<BOUNDS>(o, d, &seg, rng) {
                 return FreeFlight::Collision { t };
             }
         }
         FreeFlight::Escaped
     }
 
-    /// Decomposition tracking over the stretch [t0, t1] of `o + t d`, whose densities
-    /// lie between `min_density` and `max_density`: the distance of the collision in
-    /// it, if any.
+    /// Decomposition tracking over the stretch `seg` of `o + t d` (its densities lie
+    /// between its bounds): the distance of the collision in it, if any.
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn flight_in(
-        &self,
-        o: Vec3,
-        d: Vec3,
-        t0: f32,
-        t1: f32,
-        max_density: f32,
-        min_density: f32,
-        rng: &mut Rng,
-    ) -> Option<f32> {
-        let sigma_maj = (self.rho * max_density).min(self.sigma_cap);
+    fn flight_in<const BOUNDS: bool>(&self, o: Vec3, d: Vec3, seg: &MajorantSegment, rng: &mut Rng) -> Option<f32> {
+        let (t0, t1) = (seg.t_min, seg.t_max);
+        let sigma_maj = (self.rho * seg.max_density).min(self.sigma_cap);
         if sigma_maj <= 0.0 {
             return None;
         }
-        let sigma_c = (self.rho * min_density).min(self.sigma_cap);
+        let sigma_c = (self.rho * seg.min_density).min(self.sigma_cap);
         let t_control = if sigma_c > 0.0 { t0 + sample_exponential(rng.uniform(), sigma_c) } else { f32::INFINITY };
         let end = t1.min(t_control);
         let sigma_r = sigma_maj - sigma_c;
         if sigma_r > 0.0 {
             let mut hit = None;
             tentative_collisions(t0, end, sigma_r, rng, |t, rng| {
-                let sigma_t = self.sigma_t_estimate(o + d * t, rng);
-                debug_assert!(sigma_t <= sigma_maj * (1.0 + 1e-4) + 1e-6, "majorant {sigma_maj} < sigma_t {sigma_t}");
-                let real = rng.uniform() * sigma_r < sigma_t - sigma_c;
+                let real = self.collision_is_real::<BOUNDS>(o + d * t, sigma_c, sigma_r, sigma_maj, rng);
                 if real {
                     hit = Some(t);
                 }
@@ -683,7 +755,7 @@ impl Medium {
             // The ball around o as one stretch, without the DDA; the rest of the ray
             // by its segments.
             let reach = ball.radius.min(t_max);
-            if !self.ratio_in(o, d, 0.0, reach, ball.max_density, ball.min_density, &mut tr, rng) {
+            if !self.ratio_in(o, d, &ball.stretch(reach), &mut tr, rng) {
                 return 0.0;
             }
             if reach >= t_max {
@@ -692,34 +764,24 @@ impl Medium {
             start = reach;
         }
         for seg in self.majorant.segments(o, d, start, t_max) {
-            if !self.ratio_in(o, d, seg.t_min, seg.t_max, seg.max_density, seg.min_density, &mut tr, rng) {
+            if !self.ratio_in(o, d, &seg, &mut tr, rng) {
                 return 0.0;
             }
         }
         tr
     }
 
-    /// Residual ratio tracking over the stretch [t0, t1] of `o + t d`, whose
-    /// densities lie between `min_density` and `max_density`: multiplies `tr` by its
-    /// transmittance estimate; false when the product ended (0, or lost at roulette).
+    /// Residual ratio tracking over the stretch `seg` of `o + t d` (its densities lie
+    /// between its bounds): multiplies `tr` by its transmittance estimate; false when
+    /// the product ended (0, or lost at roulette).
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn ratio_in(
-        &self,
-        o: Vec3,
-        d: Vec3,
-        t0: f32,
-        t1: f32,
-        max_density: f32,
-        min_density: f32,
-        tr: &mut f32,
-        rng: &mut Rng,
-    ) -> bool {
-        let sigma_maj = (self.rho * max_density).min(self.sigma_cap);
+    fn ratio_in(&self, o: Vec3, d: Vec3, seg: &MajorantSegment, tr: &mut f32, rng: &mut Rng) -> bool {
+        let (t0, t1) = (seg.t_min, seg.t_max);
+        let sigma_maj = (self.rho * seg.max_density).min(self.sigma_cap);
         if sigma_maj <= 0.0 {
             return true;
         }
-        let sigma_c = (self.rho * min_density).min(self.sigma_cap);
+        let sigma_c = (self.rho * seg.min_density).min(self.sigma_cap);
         if sigma_c > 0.0 {
             *tr *= (-sigma_c * (t1 - t0)).exp();
             // Roulette with survival tr / threshold: a product far below the
@@ -1024,9 +1086,19 @@ mod tests {
         })
         .unwrap();
         let sparse_sphere = sphere.to_sparse();
-        for (name, grid) in
-            [("random", random_grid(23, 9)), ("sphere", sphere), ("sparse sphere", sparse_sphere), ("blocky", blocky)]
-        {
+        // Voxels (and so cells) of three different edges.
+        let flat = Bounds3::new(Vec3::new(-0.5, -0.2, -0.6), Vec3::new(0.5, 0.2, 0.6));
+        let stretched = DensityGrid::from_fn(UVec3::new(40, 24, 56), flat, |p| {
+            if (p / Vec3::new(0.45, 0.18, 0.55)).length() < 1.0 { 0.8 } else { 0.0 }
+        })
+        .unwrap();
+        for (name, grid) in [
+            ("random", random_grid(23, 9)),
+            ("sphere", sphere),
+            ("sparse sphere", sparse_sphere),
+            ("blocky", blocky),
+            ("stretched sphere", stretched),
+        ] {
             for cells in [4u32, 8] {
                 let m = MajorantGrid::new(&grid, cells);
                 let mut rng = Rng::new(41, cells as u64, 0);
@@ -1038,7 +1110,7 @@ mod tests {
                     };
                     balls += 1;
                     assert!(ball.max_density > 0.0 && ball.min_density <= ball.max_density);
-                    if ball.radius > cells as f32 * grid.voxel_size().x {
+                    if ball.radius > cells as f32 * grid.voxel_size().min_element() {
                         wide += 1;
                     }
                     for _ in 0..16 {
@@ -1089,6 +1161,8 @@ mod tests {
         for cells in [1, 3, 8, 13, 16] {
             let (a, b) = (MajorantGrid::new(&dense, cells), MajorantGrid::new(&sparse, cells));
             assert_eq!(a.max_density, b.max_density, "cells {cells}");
+            assert_eq!(a.min_density, b.min_density, "cells {cells}");
+            assert_eq!(a.reach, b.reach, "cells {cells}");
         }
     }
 
@@ -1123,6 +1197,32 @@ mod tests {
             // Axis-aligned rays (zero direction components) terminate too.
             let axis = [Vec3::X, -Vec3::Y, Vec3::Z][(rng.uniform() * 3.0) as usize % 3];
             assert!(m.segments(o * 0.2, axis, 0.0, f32::INFINITY).count() <= 20);
+        }
+        // A subnormal component (1 / dq overflows) from a point on a cell face along
+        // that axis: the ray crosses the same cells as without it, each with its own
+        // bounds, not one segment of the first cell's (0 times infinity).
+        for (at, d, flat, axis) in [
+            (Vec3::new(0.25, 2.0, 0.5), Vec3::new(1.0, -1e-40, 0.0), Vec3::X, 1),
+            (Vec3::new(0.25, 0.5, 3.0), Vec3::new(0.0, 0.6, -1e-39), Vec3::Y, 2),
+        ] {
+            // Exactly on the face (the case that made 0 times infinity): the float
+            // nearest the face whose cell coordinate rounds to the face's.
+            let mut o = m.bounds.min + at * m.cell_size;
+            let face = |o: Vec3| (o - m.bounds.min)[axis] * m.inv_cell_size[axis];
+            for _ in 0..64 {
+                if face(o) == at[axis] {
+                    break;
+                }
+                o[axis] = if face(o) < at[axis] { o[axis].next_up() } else { o[axis].next_down() };
+            }
+            assert_eq!(face(o), at[axis]);
+            let segs: Vec<_> = m.segments(o, d, 0.0, f32::INFINITY).collect();
+            let want: Vec<_> = m.segments(o, flat, 0.0, f32::INFINITY).collect();
+            assert_eq!(segs.len(), want.len(), "{segs:?}");
+            for (a, b) in segs.iter().zip(&want) {
+                assert_eq!((a.max_density, a.min_density), (b.max_density, b.min_density));
+                assert!(a.t_min.is_finite() && a.t_max.is_finite() && a.t_max >= a.t_min, "{a:?}");
+            }
         }
     }
 

@@ -53,6 +53,11 @@ pub struct BenchRenderArgs {
     /// same estimate, other variance and cost).
     #[arg(long)]
     pub compare_lookups: bool,
+    /// Also render every sparse configuration with free flights' brick-bounds test
+    /// the other way round (on where the grid's size leaves it off, and off where on:
+    /// the same images bit for bit, other cost).
+    #[arg(long)]
+    pub compare_bounds: bool,
     /// Render every configuration this many times, alternating, and report medians.
     #[arg(long, default_value_t = 1)]
     pub rounds: u32,
@@ -253,6 +258,11 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                 if args.compare_lookups {
                     let tag = Some(("lookups", "trilinear".into()));
                     variants.push((" trilinear", medium.clone().with_trilinear_lookups(), tag));
+                }
+                if args.compare_bounds && g.is_sparse() {
+                    let on = !medium.uses_brick_bounds();
+                    let suffix = if on { " bounds on" } else { " bounds off" };
+                    variants.push((suffix, medium.clone().with_brick_bounds(on), Some(("brick_bounds", on.into()))));
                 }
                 variants.push(("", medium, None));
                 for (suffix, medium, tag) in variants {
