@@ -625,10 +625,20 @@ impl DensityGrid {
     /// the grid read 0, as in `lookup`.
     #[inline]
     pub fn lookup_stochastic(&self, p: Vec3, bits: u64) -> f32 {
-        let Some((x, y, z, f)) = self.stencil(p) else { return 0.0 };
+        let Some((x, y, z)) = self.drawn_corner(p, bits) else { return 0.0 };
+        self.voxel_or_zero(x, y, z)
+    }
+
+    /// The corner [`DensityGrid::lookup_stochastic`] reads, in voxel indices that may
+    /// lie outside the grid (where it reads 0): `bits` holds three 21-bit uniforms, one
+    /// per axis, each choosing the upper corner with probability the fractional
+    /// coordinate. None for far-away points.
+    #[inline(always)]
+    fn drawn_corner(&self, p: Vec3, bits: u64) -> Option<(i32, i32, i32)> {
+        let (x, y, z, f) = self.stencil(p)?;
         const SCALE: f32 = 1.0 / (1u32 << 21) as f32;
         let upper = |r: u64, f: f32| ((r & 0x1F_FFFF) as f32 * SCALE < f) as i32;
-        self.voxel_or_zero(x + upper(bits, f.x), y + upper(bits >> 21, f.y), z + upper(bits >> 42, f.z))
+        Some((x + upper(bits, f.x), y + upper(bits >> 21, f.y), z + upper(bits >> 42, f.z)))
     }
 
     /// `pred(v)` for the value v that [`DensityGrid::lookup_stochastic`] reads with the
@@ -639,28 +649,21 @@ impl DensityGrid {
     /// settled by the bounds. The answer is `pred(lookup_stochastic(p, bits))`'s.
     #[inline(always)]
     pub fn stochastic_test(&self, p: Vec3, bits: u64, pred: impl Fn(f32) -> bool) -> bool {
-        let Some((x, y, z, f)) = self.stencil(p) else { return pred(0.0) };
-        const SCALE: f32 = 1.0 / (1u32 << 21) as f32;
-        let upper = |r: u64, f: f32| ((r & 0x1F_FFFF) as f32 * SCALE < f) as i32;
-        let (x, y, z) = (x + upper(bits, f.x), y + upper(bits >> 21, f.y), z + upper(bits >> 42, f.z));
+        let Some((x, y, z)) = self.drawn_corner(p, bits) else { return pred(0.0) };
+        let Storage::Sparse(b) = &self.storage else { return pred(self.voxel_or_zero(x, y, z)) };
         if x < 0 || y < 0 || z < 0 || x >= self.dims.x as i32 || y >= self.dims.y as i32 || z >= self.dims.z as i32 {
             return pred(0.0);
         }
-        let (x, y, z) = (x as u32, y as u32, z as u32);
-        match &self.storage {
-            Storage::Dense(_) => pred(self.voxel(x, y, z)),
-            Storage::Sparse(b) => {
-                let slot = b.slot_of(x, y, z);
-                let [lo, hi] = b.slot_range[slot];
-                // One branch, taken the same way whenever the bounds agree.
-                let (at_lo, at_hi) = (pred(lo), pred(hi));
-                if at_lo == at_hi {
-                    return at_lo;
-                }
-                let m = BRICK - 1;
-                pred(b.pool[slot * BRICK_VOXELS + ((x & m) + BRICK * ((y & m) + BRICK * (z & m))) as usize])
-            }
+        let c = UVec3::new(x as u32, y as u32, z as u32);
+        let slot = b.slot_of(c.x, c.y, c.z);
+        let [lo, hi] = b.slot_range[slot];
+        // One branch, taken the same way whenever the bounds agree.
+        let (at_lo, at_hi) = (pred(lo), pred(hi));
+        if at_lo == at_hi {
+            return at_lo;
         }
+        let m = BRICK - 1;
+        pred(b.pool[slot * BRICK_VOXELS + ((c.x & m) + BRICK * ((c.y & m) + BRICK * (c.z & m))) as usize])
     }
 
     /// The largest value on the grid's outer layer of voxels: 0 means the cloud does not
@@ -1092,7 +1095,7 @@ mod tests {
             for _ in 0..100_000 {
                 let t = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 1.2 - 0.1;
                 let p = sb.min + t * sb.extent();
-                let bits = ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+                let bits = rng.next_u64();
                 let v = g.lookup_stochastic(p, bits);
                 let threshold = rng.uniform() * 1.3 * g.max_value();
                 let reads = std::cell::Cell::new(0u32);
@@ -1193,7 +1196,7 @@ mod tests {
             let mut counts: std::collections::BTreeMap<u32, f64> = Default::default();
             let mut sum = 0.0f64;
             for _ in 0..draws {
-                let bits = ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+                let bits = rng.next_u64();
                 let v = dense.lookup_stochastic(p, bits);
                 assert_eq!(v.to_bits(), sparse.lookup_stochastic(p, bits).to_bits(), "{u}");
                 assert!(expected.contains_key(&v.to_bits()), "{u}: {v} is not a corner");

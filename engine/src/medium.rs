@@ -224,7 +224,7 @@ impl MajorantGrid {
             return None;
         }
         let c = q.as_uvec3().min(self.dims - UVec3::ONE);
-        let i = (c.x + self.dims.x * (c.y + self.dims.y * c.z)) as usize;
+        let i = self.cell_index(c.as_ivec3());
         let r = self.reach[i];
         if r == 0 {
             return None;
@@ -482,12 +482,9 @@ impl Medium {
     /// 0): plain delta and ratio tracking, the baseline `nimbus bench render
     /// --compare-control` measures against.
     pub fn without_control(mut self) -> Self {
+        // The balls stay as they are: a ball's cells lie below its cell's majorant, and
+        // a control of 0 bounds every density from below.
         self.majorant.min_density.fill(0.0);
-        // New bounds, new balls (unless they were turned off: all radii 0 stay 0).
-        if self.majorant.reach.iter().any(|&r| r > 0) {
-            self.majorant.reach =
-                local_reach(self.majorant.dims, &self.majorant.max_density, &self.majorant.min_density);
-        }
         self
     }
 
@@ -556,7 +553,7 @@ impl Medium {
     #[inline]
     pub fn sigma_t_estimate(&self, p: Vec3, rng: &mut Rng) -> f32 {
         if self.one_voxel {
-            let bits = ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+            let bits = rng.next_u64();
             self.rho * self.grid.lookup_stochastic(p, bits)
         } else {
             self.sigma_t(p)
@@ -580,7 +577,7 @@ impl Medium {
         rng: &mut Rng,
     ) -> bool {
         if BOUNDS && self.one_voxel {
-            let bits = ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+            let bits = rng.next_u64();
             let x = rng.uniform() * sigma_r;
             debug_assert!({
                 let sigma_t = self.rho * self.grid.lookup_stochastic(p, bits);
@@ -674,6 +671,8 @@ impl Medium {
     /// [`Medium::sample_free_flight`], with the brick-bounds test (`BOUNDS`) or without.
     #[inline(always)]
     fn free_flight<const BOUNDS: bool>(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> FreeFlight {
+        // The same walk as `transmittance_ratio`'s, written out in both: a shared walk
+        // taking the tracker as a closure measured 3 % fewer samples per second.
         let mut start = 0.0;
         if let Some(ball) = self.majorant.local_ball(o) {
             // The ball around o is one stretch of the cell's majorant and control,
@@ -701,11 +700,11 @@ impl Medium {
     #[inline(always)]
     fn flight_in<const BOUNDS: bool>(&self, o: Vec3, d: Vec3, seg: &MajorantSegment, rng: &mut Rng) -> Option<f32> {
         let (t0, t1) = (seg.t_min, seg.t_max);
-        let sigma_maj = (self.rho * seg.max_density).min(self.sigma_cap);
+        let sigma_maj = self.sigma_maj(seg);
         if sigma_maj <= 0.0 {
             return None;
         }
-        let sigma_c = (self.rho * seg.min_density).min(self.sigma_cap);
+        let sigma_c = self.sigma_min(seg);
         let t_control = if sigma_c > 0.0 { t0 + sample_exponential(rng.uniform(), sigma_c) } else { f32::INFINITY };
         let end = t1.min(t_control);
         let sigma_r = sigma_maj - sigma_c;
@@ -753,7 +752,7 @@ impl Medium {
         let mut start = 0.0;
         if let Some(ball) = self.majorant.local_ball(o) {
             // The ball around o as one stretch, without the DDA; the rest of the ray
-            // by its segments.
+            // by its segments (set up only for rays that leave the ball).
             let reach = ball.radius.min(t_max);
             if !self.ratio_in(o, d, &ball.stretch(reach), &mut tr, rng) {
                 return 0.0;
@@ -777,11 +776,11 @@ impl Medium {
     #[inline(always)]
     fn ratio_in(&self, o: Vec3, d: Vec3, seg: &MajorantSegment, tr: &mut f32, rng: &mut Rng) -> bool {
         let (t0, t1) = (seg.t_min, seg.t_max);
-        let sigma_maj = (self.rho * seg.max_density).min(self.sigma_cap);
+        let sigma_maj = self.sigma_maj(seg);
         if sigma_maj <= 0.0 {
             return true;
         }
-        let sigma_c = (self.rho * seg.min_density).min(self.sigma_cap);
+        let sigma_c = self.sigma_min(seg);
         if sigma_c > 0.0 {
             *tr *= (-sigma_c * (t1 - t0)).exp();
             // Roulette with survival tr / threshold: a product far below the
@@ -1124,7 +1123,7 @@ mod tests {
                             ball.min_density,
                             ball.max_density
                         );
-                        let bits = ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+                        let bits = rng.next_u64();
                         let corner = grid.lookup_stochastic(p, bits);
                         assert!(
                             corner <= ball.max_density && corner >= ball.min_density,

@@ -44,6 +44,13 @@ impl Rng {
         xorshifted.rotate_right(rot)
     }
 
+    /// 64 random bits: the next two 32-bit outputs, the first in the high half.
+    #[inline]
+    pub fn next_u64(&mut self) -> u64 {
+        let hi = self.next_u32() as u64;
+        (hi << 32) | self.next_u32() as u64
+    }
+
     /// Uniform in [0, 1), with 24 bits of resolution (never returns 1.0).
     #[inline]
     pub fn uniform(&mut self) -> f32 {
