@@ -12,6 +12,7 @@
 //! tracing, BDPT, the point-to-point estimator); [`film`] and [`render`] (progressive
 //! tiles and passes).
 
+pub mod blocks;
 pub mod camera;
 pub mod control;
 pub mod field;

@@ -5,6 +5,11 @@
 //! ratio tracking there), and deterministic ray marching for the optical depth the
 //! learned model's features use.
 //!
+//! A flight or shadow ray walks its ray in up to three parts, each tracked as above:
+//! the stretch inside a homogeneous block around its start, in closed form
+//! ([`crate::blocks`]); the local ball of its majorant cell, without the DDA
+//! ([`MajorantGrid::local_ball`]); and the majorant cells by the DDA for the rest.
+//!
 //! A medium answers two questions (pbrt-v4 `SamplePoint` / `SampleRay`): the
 //! coefficients at a point, and the majorant segments along a ray. Within a segment
 //! the trackers draw tentative collisions at a constant rate ([`tentative_collisions`]);
@@ -27,6 +32,7 @@
 //! grid's largest axis). Bad values are
 //! errors naming the parameter.
 
+use crate::blocks::HomogeneousBlocks;
 use crate::grid::{Bounds3, DensityGrid, floor_i32};
 use crate::phase::PhaseFunction;
 use crate::rng::Rng;
@@ -131,6 +137,37 @@ fn local_reach(dims: UVec3, max_density: &[f32], min_density: &[f32]) -> Vec<u8>
     rad
 }
 
+/// The bounds of the density over cells of `b`^3 voxels covering the grid's support:
+/// the cells' dims, and per cell (x fastest) the largest and the smallest density its
+/// region takes, the one-voxel trilinear footprint included (pbrt-v4
+/// `SampledGrid::MaxValue` widens the same way). The smallest is 0 for a cell whose
+/// footprint reaches past the grid, where the density tapers to zero.
+pub(crate) fn cell_bounds(grid: &DensityGrid, b: u32) -> (UVec3, Vec<f32>, Vec<f32>) {
+    use rayon::prelude::*;
+    let n = grid.dims();
+    // Support spans n + 1 voxels in index space u' in [-0.5, n + 0.5].
+    let dims = (n + 1 + UVec3::splat(b - 1)) / b;
+    // Cell c spans u' in [-0.5 + c b, -0.5 + (c + 1) b]; the density there depends
+    // on voxels floor(u' - 0.5) .. floor(u' - 0.5) + 1, i.e. c b - 1 ..= (c + 1) b:
+    // the exact maximum over them, dense or sparse.
+    let lo = |c: u32| (c as i64 * b as i64 - 1).max(0) as u32;
+    let hi = |c: u32, nn: u32| (((c + 1) * b) as i64).min(nn as i64 - 1) as u32;
+    // A footprint that reaches below voxel 0 or above voxel n - 1 interpolates
+    // toward the zero outside the grid.
+    let within = |c: u32, nn: u32| c * b >= 1 && (c + 1) * b < nn;
+    let (max_density, min_density): (Vec<f32>, Vec<f32>) = (0..dims.x * dims.y * dims.z)
+        .into_par_iter()
+        .map(|i| {
+            let (cx, cy, cz) = (i % dims.x, (i / dims.x) % dims.y, i / (dims.x * dims.y));
+            let (l, h) = (UVec3::new(lo(cx), lo(cy), lo(cz)), UVec3::new(hi(cx, n.x), hi(cy, n.y), hi(cz, n.z)));
+            let inside = within(cx, n.x) && within(cy, n.y) && within(cz, n.z);
+            let max = grid.max_in_box(l, h);
+            (max, if inside && max > 0.0 { grid.min_in_box(l, h) } else { 0.0 })
+        })
+        .unzip();
+    (dims, max_density, min_density)
+}
+
 impl MajorantGrid {
     /// The smallest default cell edge in voxels, and the step of the default edges
     /// (the brick edge, so sparse grids build from brick maxima).
@@ -148,31 +185,10 @@ impl MajorantGrid {
     }
 
     pub fn new(grid: &DensityGrid, cell_voxels: u32) -> Self {
-        use rayon::prelude::*;
         let b = cell_voxels.max(1);
-        let n = grid.dims();
-        // Support spans n + 1 voxels in index space u' in [-0.5, n + 0.5].
-        let dims = (n + 1 + UVec3::splat(b - 1)) / b;
+        let (dims, max_density, min_density) = cell_bounds(grid, b);
         let support = grid.support_bounds();
         let cell_size = grid.voxel_size() * b as f32;
-        // Cell c spans u' in [-0.5 + c b, -0.5 + (c + 1) b]; the density there depends
-        // on voxels floor(u' - 0.5) .. floor(u' - 0.5) + 1, i.e. c b - 1 ..= (c + 1) b:
-        // the exact maximum over them, dense or sparse.
-        let lo = |c: u32| (c as i64 * b as i64 - 1).max(0) as u32;
-        let hi = |c: u32, nn: u32| (((c + 1) * b) as i64).min(nn as i64 - 1) as u32;
-        // A footprint that reaches below voxel 0 or above voxel n - 1 interpolates
-        // toward the zero outside the grid.
-        let within = |c: u32, nn: u32| c * b >= 1 && (c + 1) * b < nn;
-        let (max_density, min_density): (Vec<f32>, Vec<f32>) = (0..dims.x * dims.y * dims.z)
-            .into_par_iter()
-            .map(|i| {
-                let (cx, cy, cz) = (i % dims.x, (i / dims.x) % dims.y, i / (dims.x * dims.y));
-                let (l, h) = (UVec3::new(lo(cx), lo(cy), lo(cz)), UVec3::new(hi(cx, n.x), hi(cy, n.y), hi(cz, n.z)));
-                let inside = within(cx, n.x) && within(cy, n.y) && within(cz, n.z);
-                let max = grid.max_in_box(l, h);
-                (max, if inside && max > 0.0 { grid.min_in_box(l, h) } else { 0.0 })
-            })
-            .unzip();
         let reach = local_reach(dims, &max_density, &min_density);
         MajorantGrid {
             dims,
@@ -425,6 +441,10 @@ pub struct Medium {
     /// sparse grids bigger than [`BRICK_BOUNDS_MIN_BYTES`], whose reads miss the
     /// caches; off for smaller ones, where the read is cheaper than the extra test.
     brick_bounds: bool,
+    /// Where the density is constant over fine cells, the stretch a flight or shadow
+    /// ray starting there tracks in closed form before its local ball
+    /// ([`crate::blocks`]); None for a cloud without such cells, or turned off.
+    blocks: Option<HomogeneousBlocks>,
     albedo: f32,
     phase: PhaseFunction,
 }
@@ -475,7 +495,8 @@ impl Medium {
         let sigma_cap = MAX_TAU_PER_VOXEL / grid.voxel_size().min_element();
         let one_voxel = rho * grid.max_value() <= sigma_cap;
         let brick_bounds = grid.is_sparse() && grid.memory_bytes() >= BRICK_BOUNDS_MIN_BYTES;
-        Ok(Medium { grid, majorant, rho, albedo, phase, sigma_cap, one_voxel, brick_bounds })
+        let blocks = HomogeneousBlocks::new(&grid, HomogeneousBlocks::default_cell_voxels(&grid));
+        Ok(Medium { grid, majorant, rho, albedo, phase, sigma_cap, one_voxel, brick_bounds, blocks })
     }
 
     /// The same medium tracked without a control density (every cell's minimum set to
@@ -483,9 +504,31 @@ impl Medium {
     /// --compare-control` measures against.
     pub fn without_control(mut self) -> Self {
         // The balls stay as they are: a ball's cells lie below its cell's majorant, and
-        // a control of 0 bounds every density from below.
+        // a control of 0 bounds every density from below. Homogeneous blocks go: they
+        // are a control over their stretch.
         self.majorant.min_density.fill(0.0);
+        self.blocks = None;
         self
+    }
+
+    /// The same medium without homogeneous blocks: flights and shadow rays start with
+    /// the local ball wherever they start. The same estimates with other random
+    /// numbers; the baseline of `nimbus bench render --compare-blocks`.
+    pub fn without_blocks(mut self) -> Self {
+        self.blocks = None;
+        self
+    }
+
+    /// The same medium with homogeneous blocks of `cell_voxels`^3 voxels (`nimbus
+    /// bench render --compare-block-cells`).
+    pub fn with_block_cells(mut self, cell_voxels: u32) -> Self {
+        self.blocks = HomogeneousBlocks::new(&self.grid, cell_voxels);
+        self
+    }
+
+    /// The homogeneous blocks, if the cloud has any.
+    pub fn blocks(&self) -> Option<&HomogeneousBlocks> {
+        self.blocks.as_ref()
     }
 
     /// The same medium tracked without local balls ([`MajorantGrid::local_ball`]):
@@ -673,13 +716,25 @@ impl Medium {
     fn free_flight<const BOUNDS: bool>(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> FreeFlight {
         // The same walk as `transmittance_ratio`'s, written out in both: a shared walk
         // taking the tracker as a closure measured 3 % fewer samples per second.
+        // A start in a homogeneous block tracks the block's stretch in closed form
+        // first; then the local ball around where the ray stands, as one stretch of
+        // its cell's majorant and control without the DDA; then the DDA for what gets
+        // past the ball (the trackers are memoryless, so each part goes on from where
+        // the last left off).
         let mut start = 0.0;
-        if let Some(ball) = self.majorant.local_ball(o) {
-            // The ball around o is one stretch of the cell's majorant and control,
-            // tracked without the DDA; a flight that reaches its surface goes on from
-            // there (the trackers are memoryless).
-            let reach = ball.radius.min(t_max);
-            if let Some(t) = self.flight_in::<BOUNDS>(o, d, &ball.stretch(reach), rng) {
+        if let Some(seg) = self.blocks.as_ref().and_then(|b| b.stretch(o, d, t_max)) {
+            if let Some(t) = self.flight_in::<BOUNDS>(o, d, &seg, rng) {
+                return FreeFlight::Collision { t };
+            }
+            if seg.t_max >= t_max {
+                return FreeFlight::Escaped;
+            }
+            start = seg.t_max;
+        }
+        if let Some(ball) = self.majorant.local_ball(o + d * start) {
+            let reach = (start + ball.radius).min(t_max);
+            let seg = MajorantSegment { t_min: start, ..ball.stretch(reach) };
+            if let Some(t) = self.flight_in::<BOUNDS>(o, d, &seg, rng) {
                 return FreeFlight::Collision { t };
             }
             if reach >= t_max {
@@ -749,12 +804,22 @@ impl Medium {
     #[inline]
     pub fn transmittance_ratio(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> f32 {
         let mut tr = 1.0f32;
+        // The homogeneous block's stretch, the local ball and the DDA, as in
+        // `free_flight` (the DDA set up only for rays that get past the ball).
         let mut start = 0.0;
-        if let Some(ball) = self.majorant.local_ball(o) {
-            // The ball around o as one stretch, without the DDA; the rest of the ray
-            // by its segments (set up only for rays that leave the ball).
-            let reach = ball.radius.min(t_max);
-            if !self.ratio_in(o, d, &ball.stretch(reach), &mut tr, rng) {
+        if let Some(seg) = self.blocks.as_ref().and_then(|b| b.stretch(o, d, t_max)) {
+            if !self.ratio_in(o, d, &seg, &mut tr, rng) {
+                return 0.0;
+            }
+            if seg.t_max >= t_max {
+                return tr;
+            }
+            start = seg.t_max;
+        }
+        if let Some(ball) = self.majorant.local_ball(o + d * start) {
+            let reach = (start + ball.radius).min(t_max);
+            let seg = MajorantSegment { t_min: start, ..ball.stretch(reach) };
+            if !self.ratio_in(o, d, &seg, &mut tr, rng) {
                 return 0.0;
             }
             if reach >= t_max {

@@ -95,7 +95,66 @@ fn cases() -> Vec<Case> {
         let medium = Medium::new(grid, rho, 1.0, PhaseFunction::Isotropic).unwrap();
         out.push(Case { name, medium, o, d, t_max: 0.9, tau, march_tol: 1e-4 * tau });
     }
+    // Two homogeneous layers: rays from inside the lower one start in a homogeneous
+    // block, tracked in closed form, and go on across the step by the ball and the DDA.
+    let layers = Arc::new(layer_grid());
+    for (name, grid, d) in [
+        ("layers", layers.clone(), Vec3::Y),
+        ("layers, oblique", layers.clone(), Vec3::new(0.3, 1.0, 0.1).normalize()),
+        ("layers, sparse", Arc::new(layers.to_sparse()), Vec3::new(-0.2, 1.0, 0.3).normalize()),
+    ] {
+        let rho = 1.5f32;
+        let (o, t_max) = (LAYER_ORIGIN, 2.0f32);
+        let tau = rho as f64 * layer_depth(o.y as f64 + (d.y * t_max) as f64) / d.y as f64;
+        // Two kinks (the ends of the step's ramp), each costing at most h^2/8 times the
+        // slope jump rho / vs along y.
+        let vs = LAYER_VOXEL as f64;
+        let step = vs / 8.0 / d.y as f64;
+        let march_tol = 2.0 * step * step / 8.0 * (rho as f64 / vs) / d.y as f64 + 1e-5 * tau;
+        let medium = Medium::new(grid, rho, 1.0, PhaseFunction::Isotropic).unwrap();
+        out.push(Case { name, medium, o, d, t_max, tau, march_tol });
+    }
     out
+}
+
+/// Edge of the layer grid's voxels.
+const LAYER_VOXEL: f32 = 1.0 / 16.0;
+/// Where the layer cases' rays start: inside the lower layer.
+const LAYER_ORIGIN: Vec3 = Vec3::new(0.1, -1.0, 0.2);
+
+/// Density 1 below y = 0 and 2 above (the step on a voxel face), 64^3 voxels over
+/// [-2, 2]^3.
+fn layer_grid() -> engine::DensityGrid {
+    let b = engine::Bounds3::new(Vec3::splat(-2.0), Vec3::splat(2.0));
+    engine::DensityGrid::from_fn(glam::UVec3::splat(64), b, |p| if p.y < 0.0 { 1.0 } else { 2.0 }).unwrap()
+}
+
+/// The integral of the layer grid's density along y from the layer cases' origin to
+/// `y` (inside the two layers' cores): 1 up to the last voxel centre below the step,
+/// linear from 1 to 2 between the centres either side of it, 2 beyond.
+fn layer_depth(y: f64) -> f64 {
+    let (y0, h) = (LAYER_ORIGIN.y as f64, 0.5 * LAYER_VOXEL as f64);
+    if y <= -h {
+        y - y0
+    } else if y <= h {
+        let s = y + h;
+        (-h - y0) + s + 0.5 * s * s / (2.0 * h)
+    } else {
+        (-h - y0) + 3.0 * h + 2.0 * (y - h)
+    }
+}
+
+/// The layer cases start in a homogeneous block whose stretch ends before the step,
+/// so their trackers go from the block to the ball and the DDA.
+#[test]
+fn layer_cases_start_in_a_homogeneous_block() {
+    let layers: Vec<_> = cases().into_iter().filter(|c| c.name.starts_with("layers")).collect();
+    assert_eq!(layers.len(), 3);
+    for c in layers {
+        let s = c.medium.blocks().and_then(|b| b.stretch(c.o, c.d, c.t_max));
+        assert!(s.is_some_and(|s| s.t_max > 0.1 && s.t_max < 0.9 * c.t_max), "{}: {s:?}", c.name);
+        assert_eq!(c.medium.clone().without_blocks().blocks().map(|b| b.dims()), None);
+    }
 }
 
 /// The fine ramp has cells with a positive control density along the cases' rays
@@ -171,6 +230,41 @@ fn free_flight_distances_follow_the_ramp() {
         let n = 1_000_000;
         for _ in 0..n {
             match medium.sample_free_flight(o, Vec3::Y, f32::INFINITY, &mut rng) {
+                FreeFlight::Collision { t } if (t as f64) < l => {
+                    let b = ((1.0 - (-tau(t as f64)).exp()) / f_l * bins as f64) as usize;
+                    obs[b.min(bins - 1)] += 1.0;
+                }
+                _ => obs[bins] += 1.0,
+            }
+        }
+        let mut exp = vec![n as f64 * f_l / bins as f64; bins + 1];
+        exp[bins] = n as f64 * (1.0 - f_l);
+        let r = chi2_test(&obs, &exp, 5.0);
+        assert!(r.p_value > alpha, "stream {stream}: {r:?}");
+    }
+}
+
+/// Free-flight distances from inside a homogeneous block (the layer grid, the step
+/// ahead), with and without the blocks, on their own random streams: chi-square
+/// against the closed form, as for the ramp.
+#[test]
+fn free_flight_distances_from_a_homogeneous_block() {
+    let rho = 1.5f32;
+    let grid = Arc::new(layer_grid());
+    let d = Vec3::new(0.3, 1.0, 0.1).normalize();
+    let (o, l) = (LAYER_ORIGIN, 2.0f64);
+    let tau = |t: f64| rho as f64 * layer_depth(o.y as f64 + d.y as f64 * t) / d.y as f64;
+    let f_l = 1.0 - (-tau(l)).exp();
+    let alpha = 1.0 - 0.99f64.powf(0.5);
+    let with = Medium::new(grid, rho, 1.0, PhaseFunction::Isotropic).unwrap();
+    assert!(with.blocks().is_some());
+    for (stream, medium) in [with.clone(), with.without_blocks()].into_iter().enumerate() {
+        let bins = 50usize;
+        let mut obs = vec![0.0f64; bins + 1];
+        let mut rng = Rng::new(23, stream as u64, 0);
+        let n = 1_000_000;
+        for _ in 0..n {
+            match medium.sample_free_flight(o, d, f32::INFINITY, &mut rng) {
                 FreeFlight::Collision { t } if (t as f64) < l => {
                     let b = ((1.0 - (-tau(t as f64)).exp()) / f_l * bins as f64) as usize;
                     obs[b.min(bins - 1)] += 1.0;

@@ -48,6 +48,15 @@ pub struct BenchRenderArgs {
     /// same estimate, other cost).
     #[arg(long)]
     pub compare_balls: bool,
+    /// Also render each configuration without homogeneous blocks (flights and
+    /// shadow rays from a cloud's constant core tracked in closed form: the same
+    /// estimate, other cost).
+    #[arg(long)]
+    pub compare_blocks: bool,
+    /// Also render the first configuration with homogeneous blocks of these edges,
+    /// in voxels.
+    #[arg(long, value_delimiter = ',')]
+    pub compare_block_cells: Vec<u32>,
     /// Also render every configuration with trilinear lookups in the trackers (eight
     /// voxels per tentative collision instead of one corner drawn by its weight: the
     /// same estimate, other variance and cost).
@@ -248,12 +257,22 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                 info["majorant_cells"] = c.into();
                 // The measured configuration last, after the baselines asked for
                 // (each the same medium tracked another way, tagged in its JSON).
+                let block_labels: Vec<String> =
+                    args.compare_block_cells.iter().map(|b| format!(" blocks {b}")).collect();
                 let mut variants: Vec<(&str, engine::Medium, Option<(&str, serde_json::Value)>)> = Vec::new();
                 if configs.is_empty() && args.compare_control {
                     variants.push((" no control", medium.clone().without_control(), Some(("control", false.into()))));
                 }
                 if configs.is_empty() && args.compare_balls {
                     variants.push((" no balls", medium.clone().without_local_balls(), Some(("balls", false.into()))));
+                }
+                if args.compare_blocks {
+                    variants.push((" no blocks", medium.clone().without_blocks(), Some(("blocks", false.into()))));
+                }
+                if configs.is_empty() {
+                    for (&b, label) in args.compare_block_cells.iter().zip(&block_labels) {
+                        variants.push((label, medium.clone().with_block_cells(b), Some(("block_cells", b.into()))));
+                    }
                 }
                 if args.compare_lookups {
                     let tag = Some(("lookups", "trilinear".into()));
