@@ -2,14 +2,15 @@
 //! a hard-edged or flat-topped cloud), a flight or shadow ray starting there tracks
 //! the part of its ray inside that region in closed form, with no density lookup.
 //!
-//! The majorant cells ([`crate::MajorantGrid`]) are coarse, about an eighth of the
+//! The majorant cells (`MajorantGrid` in `medium`) are coarse, about an eighth of the
 //! grid's axis, so that rays take few DDA steps; a hard edge then makes most of a
 //! cloud's cells mixed (densities 0 and 1), and every tentative collision in them needs
 //! a lookup, the core's included. Homogeneous blocks look at the density on a grid of
-//! cells four times finer: each fine cell keeps the density it holds when that is one
-//! constant over its region (the trilinear footprint included, as the majorant cells'
-//! bounds), and a reach r >= 1 such that every cell within Chebyshev distance r - 1
-//! holds the same constant. A flight or shadow ray from a point in such a cell tracks
+//! cells a quarter of the majorant cells' edge: each fine cell keeps the density it
+//! holds when that is one constant over its region (the trilinear footprint included,
+//! as the majorant cells' bounds), and a reach r >= 1 such that every cell within
+//! Chebyshev distance r - 1 holds the same constant. A flight or shadow ray from a
+//! point in such a cell tracks
 //! the stretch of its ray inside that cube of 2 r - 1 cells (one exponential draw, or
 //! one exp()), then goes on by the local ball and the DDA from where it left it (the
 //! trackers are memoryless, so the estimate is the same).
@@ -18,11 +19,18 @@
 //! trackers run as without ([`HomogeneousBlocks::new`] returns None).
 
 use crate::grid::DensityGrid;
-use crate::medium::{MajorantGrid, MajorantSegment, cell_bounds};
 use glam::{IVec3, UVec3, Vec3};
 
 /// The largest reach a block cell gets: a cube of up to 2 * 32 - 1 cells on an edge.
 pub const MAX_BLOCK_REACH: u32 = 32;
+
+/// The stretch [0, t_max] of a ray inside a homogeneous block, and the block's
+/// density there.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BlockStretch {
+    pub t_max: f32,
+    pub density: f32,
+}
 
 /// One fine cell: its constant density (0 where the density is not constant over
 /// the cell, or the cell is empty) and the reach of its cube.
@@ -87,18 +95,18 @@ fn block_reach(dims: UVec3, density: &[f32]) -> Vec<u32> {
 }
 
 impl HomogeneousBlocks {
-    /// The default fine cell edge: a quarter of the majorant cells' default
-    /// ([`MajorantGrid::default_cell_voxels`]), at least 2 voxels: 4 voxels at 128^3,
-    /// 32 at 1024^3 (`nimbus bench render --compare-block-cells`).
-    pub fn default_cell_voxels(grid: &DensityGrid) -> u32 {
-        (MajorantGrid::default_cell_voxels(grid) / 4).max(2)
+    /// The fine cell edge for majorant cells of `majorant_cell_voxels`: a quarter,
+    /// at least 2 voxels (4 voxels at 128^3 with the default cells, 32 at 1024^3;
+    /// `nimbus bench render --compare-block-cells`).
+    pub fn cell_voxels_for(majorant_cell_voxels: u32) -> u32 {
+        (majorant_cell_voxels / 4).max(2)
     }
 
     /// The blocks of `grid` on cells of `cell_voxels`^3 voxels; None where no cell
     /// holds a constant density above 0.
     pub fn new(grid: &DensityGrid, cell_voxels: u32) -> Option<Self> {
         let b = cell_voxels.max(1);
-        let (dims, max_density, min_density) = cell_bounds(grid, b);
+        let (dims, max_density, min_density) = grid.cell_bounds(b);
         let density: Vec<f32> = max_density
             .iter()
             .zip(&min_density)
@@ -129,10 +137,10 @@ impl HomogeneousBlocks {
     }
 
     /// The stretch [0, t] of the ray `o + t d` (t at most `t_max`) inside the cube of
-    /// constant density around `o`, when `o`'s cell holds one: a segment whose
-    /// majorant and control are that density. None elsewhere, and outside the grid.
+    /// constant density around `o`, when `o`'s cell holds one. None elsewhere, and
+    /// outside the grid.
     #[inline(always)]
-    pub fn stretch(&self, o: Vec3, d: Vec3, t_max: f32) -> Option<MajorantSegment> {
+    pub fn stretch(&self, o: Vec3, d: Vec3, t_max: f32) -> Option<BlockStretch> {
         let q = (o - self.origin) * self.inv_cell_size;
         if !(q.cmpge(Vec3::ZERO).all() && q.cmplt(self.dims.as_vec3()).all()) {
             return None;
@@ -149,7 +157,7 @@ impl HomogeneousBlocks {
         let face = Vec3::select(d.cmpgt(Vec3::ZERO), cf + r, cf + 1.0 - r);
         let t_axis = Vec3::select(d.cmpne(Vec3::ZERO), (face - q) * (self.cell_size * d.recip()), Vec3::INFINITY);
         let exit = t_axis.x.min(t_axis.y).min(t_axis.z).min(t_max).max(0.0);
-        Some(MajorantSegment { t_min: 0.0, t_max: exit, max_density: cell.density, min_density: cell.density })
+        Some(BlockStretch { t_max: exit, density: cell.density })
     }
 }
 
@@ -187,7 +195,7 @@ mod tests {
             let blocks = HomogeneousBlocks::new(&g, 4).expect("the sphere's core and the slab are homogeneous");
             assert!(blocks.homogeneous_cells() > 50, "{}", blocks.homogeneous_cells());
             let mut rng = Rng::new(7, 1, 2);
-            let (mut found, mut long) = (0, 0);
+            let (mut found, mut long, mut deep) = (0, 0, 0);
             let bounds = g.support_bounds();
             for _ in 0..20_000 {
                 let u = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform());
@@ -195,20 +203,22 @@ mod tests {
                 let d = sample_uniform_sphere(rng.uniform2());
                 let Some(seg) = blocks.stretch(o, d, f32::INFINITY) else { continue };
                 found += 1;
-                assert_eq!(seg.t_min, 0.0);
                 assert!(seg.t_max >= 0.0 && seg.t_max.is_finite());
                 long += (seg.t_max > 2.0 * g.voxel_size().max_element()) as u32;
+                deep += (seg.t_max > 8.0 * g.voxel_size().max_element()) as u32;
                 for i in 0..=16 {
                     let p = o + d * (seg.t_max * i as f32 / 16.0);
                     let v = g.lookup(p);
-                    assert!((v - seg.max_density).abs() <= 1e-5, "{p}: {v} in a stretch of {}", seg.max_density);
+                    assert!((v - seg.density).abs() <= 1e-5, "{p}: {v} in a stretch of {}", seg.density);
                     for _ in 0..4 {
                         let w = g.lookup_stochastic(p, rng.next_u64());
-                        assert_eq!(w, seg.max_density, "{p}: one-voxel read {w}");
+                        assert_eq!(w, seg.density, "{p}: one-voxel read {w}");
                     }
                 }
             }
             assert!(found > 2_000 && long > 500, "{found} stretches, {long} longer than two voxels");
+            // Longer than a cell's diagonal (4 sqrt(3) voxels): cubes of reach > 1.
+            assert!(deep > 20, "{deep} stretches longer than two cells");
         }
     }
 
@@ -226,7 +236,7 @@ mod tests {
         assert_eq!(blocks.stretch(Vec3::new(2.0, 0.0, 0.0), Vec3::X, 1.0), None);
         // The core: a stretch up to t_max, or up to the cube's face.
         let s = blocks.stretch(Vec3::ZERO, Vec3::Y, 0.01).unwrap();
-        assert_eq!((s.t_max, s.max_density, s.min_density), (0.01, 1.0, 1.0));
+        assert_eq!((s.t_max, s.density), (0.01, 1.0));
         let s = blocks.stretch(Vec3::ZERO, Vec3::Y, f32::INFINITY).unwrap();
         assert!(s.t_max > 0.1 && s.t_max < 0.25, "{}", s.t_max);
         let noisy = DensityGrid::from_fn(UVec3::splat(24), Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)), |p| {

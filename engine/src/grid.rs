@@ -345,6 +345,38 @@ impl DensityGrid {
         }
     }
 
+    /// The bounds of the density over cells of `b`^3 voxels covering the grid's support:
+    /// the cells' dims, and per cell (x fastest) the largest and the smallest density its
+    /// region takes, the one-voxel trilinear footprint included (pbrt-v4
+    /// `SampledGrid::MaxValue` widens the same way). The smallest is 0 for a cell whose
+    /// footprint reaches past the grid, where the density tapers to zero.
+    pub(crate) fn cell_bounds(&self, b: u32) -> (UVec3, Vec<f32>, Vec<f32>) {
+        let grid = self;
+        use rayon::prelude::*;
+        let n = grid.dims();
+        // Support spans n + 1 voxels in index space u' in [-0.5, n + 0.5].
+        let dims = (n + 1 + UVec3::splat(b - 1)) / b;
+        // Cell c spans u' in [-0.5 + c b, -0.5 + (c + 1) b]; the density there depends
+        // on voxels floor(u' - 0.5) .. floor(u' - 0.5) + 1, i.e. c b - 1 ..= (c + 1) b:
+        // the exact maximum over them, dense or sparse.
+        let lo = |c: u32| (c as i64 * b as i64 - 1).max(0) as u32;
+        let hi = |c: u32, nn: u32| (((c + 1) * b) as i64).min(nn as i64 - 1) as u32;
+        // A footprint that reaches below voxel 0 or above voxel n - 1 interpolates
+        // toward the zero outside the grid.
+        let within = |c: u32, nn: u32| c * b >= 1 && (c + 1) * b < nn;
+        let (max_density, min_density): (Vec<f32>, Vec<f32>) = (0..dims.x * dims.y * dims.z)
+            .into_par_iter()
+            .map(|i| {
+                let (cx, cy, cz) = (i % dims.x, (i / dims.x) % dims.y, i / (dims.x * dims.y));
+                let (l, h) = (UVec3::new(lo(cx), lo(cy), lo(cz)), UVec3::new(hi(cx, n.x), hi(cy, n.y), hi(cz, n.z)));
+                let inside = within(cx, n.x) && within(cy, n.y) && within(cz, n.z);
+                let max = grid.max_in_box(l, h);
+                (max, if inside && max > 0.0 { grid.min_in_box(l, h) } else { 0.0 })
+            })
+            .unzip();
+        (dims, max_density, min_density)
+    }
+
     /// The largest voxel value in the box `lo ..= hi` (grid voxel indices, inside the
     /// grid). A sparse grid answers whole zero, constant and fully covered bricks from
     /// their slots and reads only the voxels of partly covered ones.

@@ -137,37 +137,6 @@ fn local_reach(dims: UVec3, max_density: &[f32], min_density: &[f32]) -> Vec<u8>
     rad
 }
 
-/// The bounds of the density over cells of `b`^3 voxels covering the grid's support:
-/// the cells' dims, and per cell (x fastest) the largest and the smallest density its
-/// region takes, the one-voxel trilinear footprint included (pbrt-v4
-/// `SampledGrid::MaxValue` widens the same way). The smallest is 0 for a cell whose
-/// footprint reaches past the grid, where the density tapers to zero.
-pub(crate) fn cell_bounds(grid: &DensityGrid, b: u32) -> (UVec3, Vec<f32>, Vec<f32>) {
-    use rayon::prelude::*;
-    let n = grid.dims();
-    // Support spans n + 1 voxels in index space u' in [-0.5, n + 0.5].
-    let dims = (n + 1 + UVec3::splat(b - 1)) / b;
-    // Cell c spans u' in [-0.5 + c b, -0.5 + (c + 1) b]; the density there depends
-    // on voxels floor(u' - 0.5) .. floor(u' - 0.5) + 1, i.e. c b - 1 ..= (c + 1) b:
-    // the exact maximum over them, dense or sparse.
-    let lo = |c: u32| (c as i64 * b as i64 - 1).max(0) as u32;
-    let hi = |c: u32, nn: u32| (((c + 1) * b) as i64).min(nn as i64 - 1) as u32;
-    // A footprint that reaches below voxel 0 or above voxel n - 1 interpolates
-    // toward the zero outside the grid.
-    let within = |c: u32, nn: u32| c * b >= 1 && (c + 1) * b < nn;
-    let (max_density, min_density): (Vec<f32>, Vec<f32>) = (0..dims.x * dims.y * dims.z)
-        .into_par_iter()
-        .map(|i| {
-            let (cx, cy, cz) = (i % dims.x, (i / dims.x) % dims.y, i / (dims.x * dims.y));
-            let (l, h) = (UVec3::new(lo(cx), lo(cy), lo(cz)), UVec3::new(hi(cx, n.x), hi(cy, n.y), hi(cz, n.z)));
-            let inside = within(cx, n.x) && within(cy, n.y) && within(cz, n.z);
-            let max = grid.max_in_box(l, h);
-            (max, if inside && max > 0.0 { grid.min_in_box(l, h) } else { 0.0 })
-        })
-        .unzip();
-    (dims, max_density, min_density)
-}
-
 impl MajorantGrid {
     /// The smallest default cell edge in voxels, and the step of the default edges
     /// (the brick edge, so sparse grids build from brick maxima).
@@ -186,7 +155,7 @@ impl MajorantGrid {
 
     pub fn new(grid: &DensityGrid, cell_voxels: u32) -> Self {
         let b = cell_voxels.max(1);
-        let (dims, max_density, min_density) = cell_bounds(grid, b);
+        let (dims, max_density, min_density) = grid.cell_bounds(b);
         let support = grid.support_bounds();
         let cell_size = grid.voxel_size() * b as f32;
         let reach = local_reach(dims, &max_density, &min_density);
@@ -495,7 +464,7 @@ impl Medium {
         let sigma_cap = MAX_TAU_PER_VOXEL / grid.voxel_size().min_element();
         let one_voxel = rho * grid.max_value() <= sigma_cap;
         let brick_bounds = grid.is_sparse() && grid.memory_bytes() >= BRICK_BOUNDS_MIN_BYTES;
-        let blocks = HomogeneousBlocks::new(&grid, HomogeneousBlocks::default_cell_voxels(&grid));
+        let blocks = HomogeneousBlocks::new(&grid, HomogeneousBlocks::cell_voxels_for(cell_voxels));
         Ok(Medium { grid, majorant, rho, albedo, phase, sigma_cap, one_voxel, brick_bounds, blocks })
     }
 
@@ -526,6 +495,15 @@ impl Medium {
         self
     }
 
+    /// The stretch [0, t] of `o + t d` inside the homogeneous block around `o`, as a
+    /// segment whose majorant and control are the block's density; None outside
+    /// blocks.
+    #[inline(always)]
+    fn block_stretch(&self, o: Vec3, d: Vec3, t_max: f32) -> Option<MajorantSegment> {
+        let s = self.blocks.as_ref()?.stretch(o, d, t_max)?;
+        Some(MajorantSegment { t_min: 0.0, t_max: s.t_max, max_density: s.density, min_density: s.density })
+    }
+
     /// The homogeneous blocks, if the cloud has any.
     pub fn blocks(&self) -> Option<&HomogeneousBlocks> {
         self.blocks.as_ref()
@@ -533,9 +511,10 @@ impl Medium {
 
     /// The same medium tracked without local balls ([`MajorantGrid::local_ball`]):
     /// every flight and shadow ray walks the majorant cells by the DDA from its
-    /// origin. The same estimates with other random numbers; the baseline `nimbus
-    /// bench render --compare-balls` measures against, and an independent estimator
-    /// for the tests.
+    /// origin, or from the end of its homogeneous block's stretch (the blocks stay;
+    /// [`Medium::without_blocks`] removes them). The same estimates with other random
+    /// numbers; the baseline `nimbus bench render --compare-balls` measures against,
+    /// and an independent estimator for the tests.
     pub fn without_local_balls(mut self) -> Self {
         self.majorant.reach.fill(0);
         self
@@ -722,7 +701,7 @@ impl Medium {
         // past the ball (the trackers are memoryless, so each part goes on from where
         // the last left off).
         let mut start = 0.0;
-        if let Some(seg) = self.blocks.as_ref().and_then(|b| b.stretch(o, d, t_max)) {
+        if let Some(seg) = self.block_stretch(o, d, t_max) {
             if let Some(t) = self.flight_in::<BOUNDS>(o, d, &seg, rng) {
                 return FreeFlight::Collision { t };
             }
@@ -807,7 +786,7 @@ impl Medium {
         // The homogeneous block's stretch, the local ball and the DDA, as in
         // `free_flight` (the DDA set up only for rays that get past the ball).
         let mut start = 0.0;
-        if let Some(seg) = self.blocks.as_ref().and_then(|b| b.stretch(o, d, t_max)) {
+        if let Some(seg) = self.block_stretch(o, d, t_max) {
             if !self.ratio_in(o, d, &seg, &mut tr, rng) {
                 return 0.0;
             }

@@ -344,9 +344,12 @@ fn free_flight_distances_are_exponential() {
     // From inside the interior, straight up; the taper starts 2 - vs/2 above o.
     let o = Vec3::new(0.0, -1.9, 0.0);
     let l = 3.8f64; // stays in the constant region
-    // o lies in a local ball (its cell reaches past the grid, so it is tracked against
-    // a control of 0), the flight's first stretch without the DDA.
-    let ball = medium.majorant().local_ball(o).expect("a local ball");
+    // o lies in a homogeneous block, the flight's first stretch in closed form; where
+    // that ends, a local ball (its cell reaches past the grid, so it is tracked
+    // against a control of 0) without the DDA; then the DDA.
+    let block = medium.blocks().and_then(|b| b.stretch(o, Vec3::Y, f32::INFINITY)).expect("a homogeneous block");
+    assert!(block.t_max > 0.0 && (block.t_max as f64) < l, "{block:?}");
+    let ball = medium.majorant().local_ball(o + Vec3::Y * block.t_max).expect("a local ball");
     assert!(ball.radius > 0.0, "{ball:?}");
     let bins = 50usize;
     let p_beyond = (-(rho as f64) * l).exp();

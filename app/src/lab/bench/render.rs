@@ -40,7 +40,8 @@ pub struct BenchRenderArgs {
     #[arg(long)]
     pub compare_sparse: bool,
     /// Also render the first configuration without the trackers' control density
-    /// (plain delta and ratio tracking: the same estimate, other variance and cost).
+    /// (plain delta and ratio tracking, so without the homogeneous blocks either: the
+    /// same estimate, other variance and cost).
     #[arg(long)]
     pub compare_control: bool,
     /// Also render the first configuration without the trackers' local balls (every
