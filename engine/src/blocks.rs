@@ -51,16 +51,18 @@ pub struct HomogeneousBlocks {
     inv_cell_size: Vec3,
 }
 
-/// Per cell of constant density v > 0, a reach r >= 1 such that every cell within
-/// Chebyshev distance r - 1 has the constant density v too (0 for the other cells).
-/// An erosion, one ring per round: a cell of reach r gets r + 1 when each of its 26
-/// neighbours holds v and has reach r itself (their cubes of r - 1 cover its cube of
-/// r), up to [`MAX_BLOCK_REACH`]. A cube never leaves the grid.
-fn block_reach(dims: UVec3, density: &[f32]) -> Vec<u32> {
+/// An erosion over a grid of cells (x fastest), one ring per round: a cell of reach
+/// r >= 1 (from `start`, where 0 marks a cell that never grows) gets r + 1 when each
+/// of its 26 neighbours j `fits(i, j)` and has reach r itself, up to `max`; a
+/// neighbour outside the grid stops it. Where `fits` is transitive enough that a
+/// neighbour's fitting cells fit the cell too (equal densities, or bounds within
+/// bounds), the cells within Chebyshev distance r - 1 of a cell of reach r all fit it:
+/// the neighbours' cubes of r - 1 cover its cube of r.
+pub(crate) fn erode(dims: UVec3, start: Vec<u32>, max: u32, fits: impl Fn(usize, usize) -> bool + Sync) -> Vec<u32> {
     use rayon::prelude::*;
     let d = dims.as_ivec3();
-    let mut reach: Vec<u32> = density.iter().map(|&v| (v > 0.0) as u32).collect();
-    for level in 1..MAX_BLOCK_REACH {
+    let mut reach = start;
+    for level in 1..max {
         let next: Vec<u32> = (0..reach.len())
             .into_par_iter()
             .map(|i| {
@@ -76,7 +78,7 @@ fn block_reach(dims: UVec3, density: &[f32]) -> Vec<u32> {
                                 return level;
                             }
                             let j = (n.x + d.x * (n.y + d.y * n.z)) as usize;
-                            if reach[j] < level || density[j] != density[i] {
+                            if reach[j] < level || !fits(i, j) {
                                 return level;
                             }
                         }
@@ -92,6 +94,14 @@ fn block_reach(dims: UVec3, density: &[f32]) -> Vec<u32> {
         }
     }
     reach
+}
+
+/// Per cell of constant density v > 0, a reach r >= 1 such that every cell within
+/// Chebyshev distance r - 1 has the constant density v too (0 for the other cells),
+/// up to [`MAX_BLOCK_REACH`] ([`erode`]). A cube never leaves the grid.
+fn block_reach(dims: UVec3, density: &[f32]) -> Vec<u32> {
+    let start = density.iter().map(|&v| (v > 0.0) as u32).collect();
+    erode(dims, start, MAX_BLOCK_REACH, |i, j| density[j] == density[i])
 }
 
 impl HomogeneousBlocks {

@@ -92,49 +92,11 @@ impl LocalBall {
 /// whose cells lie within the neighbours' bounds and so within the cell's, cover its
 /// block of r + 1). Conservative: a radius can be larger than the one found.
 fn local_reach(dims: UVec3, max_density: &[f32], min_density: &[f32]) -> Vec<u8> {
-    use rayon::prelude::*;
-    let d = dims.as_ivec3();
-    // rad[i] = radius + 1 for every cell, the empty ones included (they bound their
-    // empty neighbours); empty cells get 0 at the end.
-    let mut rad = vec![1u8; max_density.len()];
-    for level in 1..=MAX_REACH {
-        let next: Vec<u8> = (0..rad.len())
-            .into_par_iter()
-            .map(|i| {
-                if rad[i] != level {
-                    return rad[i];
-                }
-                let c = IVec3::new(i as i32 % d.x, (i as i32 / d.x) % d.y, i as i32 / (d.x * d.y));
-                for dz in -1..=1 {
-                    for dy in -1..=1 {
-                        for dx in -1..=1 {
-                            let n = c + IVec3::new(dx, dy, dz);
-                            if n.cmplt(IVec3::ZERO).any() || n.cmpge(d).any() {
-                                return level;
-                            }
-                            let j = (n.x + d.x * (n.y + d.y * n.z)) as usize;
-                            let within = max_density[j] <= max_density[i] && min_density[j] >= min_density[i];
-                            if rad[j] < level || !within {
-                                return level;
-                            }
-                        }
-                    }
-                }
-                level + 1
-            })
-            .collect();
-        let grew = next.iter().zip(&rad).any(|(a, b)| a != b);
-        rad = next;
-        if !grew {
-            break;
-        }
-    }
-    for (r, &m) in rad.iter_mut().zip(max_density) {
-        if m <= 0.0 {
-            *r = 0;
-        }
-    }
-    rad
+    // Every cell starts at radius 0 (stored 1), the empty ones included (they bound
+    // their empty neighbours); empty cells get 0 at the end.
+    let within = |i: usize, j: usize| max_density[j] <= max_density[i] && min_density[j] >= min_density[i];
+    let rad = crate::blocks::erode(dims, vec![1; max_density.len()], MAX_REACH as u32 + 1, within);
+    rad.iter().zip(max_density).map(|(&r, &m)| if m <= 0.0 { 0 } else { r as u8 }).collect()
 }
 
 impl MajorantGrid {

@@ -203,6 +203,33 @@ fn homogeneous_cells_give_exact_transmittance() {
     }
 }
 
+/// Chi-square of 10^6 free-flight distances along `o + t d` against the closed form
+/// F(t) = 1 - exp(-tau(t)): 50 equal-probability bins on [0, l] and one for "beyond l".
+fn flight_distances_chi2(
+    medium: &Medium,
+    o: Vec3,
+    d: Vec3,
+    l: f64,
+    tau: impl Fn(f64) -> f64,
+    mut rng: Rng,
+) -> engine::stats::Chi2 {
+    let f_l = 1.0 - (-tau(l)).exp();
+    let (bins, n) = (50usize, 1_000_000);
+    let mut obs = vec![0.0f64; bins + 1];
+    for _ in 0..n {
+        match medium.sample_free_flight(o, d, f32::INFINITY, &mut rng) {
+            FreeFlight::Collision { t } if (t as f64) < l => {
+                let b = ((1.0 - (-tau(t as f64)).exp()) / f_l * bins as f64) as usize;
+                obs[b.min(bins - 1)] += 1.0;
+            }
+            _ => obs[bins] += 1.0,
+        }
+    }
+    let mut exp = vec![n as f64 * f_l / bins as f64; bins + 1];
+    exp[bins] = n as f64 * (1.0 - f_l);
+    chi2_test(&obs, &exp, 5.0)
+}
+
 /// Free-flight distances where the medium is part control, part tracked residual
 /// (the fine ramp, d(y) = 0.5 + 0.8 y, straight up), dense and sparse storage with
 /// their own random streams: chi-square against the closed form F(t) = 1 -
@@ -223,23 +250,7 @@ fn free_flight_distances_follow_the_ramp() {
         let (o, l) = (Vec3::new(0.1, -0.45, 0.2), 0.9f64);
         let y0 = o.y as f64;
         let tau = |t: f64| rho as f64 * (a0 * t + 0.5 * b0 * ((y0 + t).powi(2) - y0 * y0));
-        let f_l = 1.0 - (-tau(l)).exp();
-        let bins = 50usize;
-        let mut obs = vec![0.0f64; bins + 1];
-        let mut rng = Rng::new(17, stream as u64, 0);
-        let n = 1_000_000;
-        for _ in 0..n {
-            match medium.sample_free_flight(o, Vec3::Y, f32::INFINITY, &mut rng) {
-                FreeFlight::Collision { t } if (t as f64) < l => {
-                    let b = ((1.0 - (-tau(t as f64)).exp()) / f_l * bins as f64) as usize;
-                    obs[b.min(bins - 1)] += 1.0;
-                }
-                _ => obs[bins] += 1.0,
-            }
-        }
-        let mut exp = vec![n as f64 * f_l / bins as f64; bins + 1];
-        exp[bins] = n as f64 * (1.0 - f_l);
-        let r = chi2_test(&obs, &exp, 5.0);
+        let r = flight_distances_chi2(&medium, o, Vec3::Y, l, tau, Rng::new(17, stream as u64, 0));
         assert!(r.p_value > alpha, "stream {stream}: {r:?}");
     }
 }
@@ -254,27 +265,11 @@ fn free_flight_distances_from_a_homogeneous_block() {
     let d = Vec3::new(0.3, 1.0, 0.1).normalize();
     let (o, l) = (LAYER_ORIGIN, 2.0f64);
     let tau = |t: f64| rho as f64 * layer_depth(o.y as f64 + d.y as f64 * t) / d.y as f64;
-    let f_l = 1.0 - (-tau(l)).exp();
     let alpha = 1.0 - 0.99f64.powf(0.5);
     let with = Medium::new(grid, rho, 1.0, PhaseFunction::Isotropic).unwrap();
     assert!(with.blocks().is_some());
     for (stream, medium) in [with.clone(), with.without_blocks()].into_iter().enumerate() {
-        let bins = 50usize;
-        let mut obs = vec![0.0f64; bins + 1];
-        let mut rng = Rng::new(23, stream as u64, 0);
-        let n = 1_000_000;
-        for _ in 0..n {
-            match medium.sample_free_flight(o, d, f32::INFINITY, &mut rng) {
-                FreeFlight::Collision { t } if (t as f64) < l => {
-                    let b = ((1.0 - (-tau(t as f64)).exp()) / f_l * bins as f64) as usize;
-                    obs[b.min(bins - 1)] += 1.0;
-                }
-                _ => obs[bins] += 1.0,
-            }
-        }
-        let mut exp = vec![n as f64 * f_l / bins as f64; bins + 1];
-        exp[bins] = n as f64 * (1.0 - f_l);
-        let r = chi2_test(&obs, &exp, 5.0);
+        let r = flight_distances_chi2(&medium, o, d, l, tau, Rng::new(23, stream as u64, 0));
         assert!(r.p_value > alpha, "stream {stream}: {r:?}");
     }
 }
