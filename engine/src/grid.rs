@@ -351,9 +351,8 @@ impl DensityGrid {
     /// `SampledGrid::MaxValue` widens the same way). The smallest is 0 for a cell whose
     /// footprint reaches past the grid, where the density tapers to zero.
     pub(crate) fn cell_bounds(&self, b: u32) -> (UVec3, Vec<f32>, Vec<f32>) {
-        let grid = self;
         use rayon::prelude::*;
-        let n = grid.dims();
+        let n = self.dims;
         // Support spans n + 1 voxels in index space u' in [-0.5, n + 0.5].
         let dims = (n + 1 + UVec3::splat(b - 1)) / b;
         // Cell c spans u' in [-0.5 + c b, -0.5 + (c + 1) b]; the density there depends
@@ -370,8 +369,8 @@ impl DensityGrid {
                 let (cx, cy, cz) = (i % dims.x, (i / dims.x) % dims.y, i / (dims.x * dims.y));
                 let (l, h) = (UVec3::new(lo(cx), lo(cy), lo(cz)), UVec3::new(hi(cx, n.x), hi(cy, n.y), hi(cz, n.z)));
                 let inside = within(cx, n.x) && within(cy, n.y) && within(cz, n.z);
-                let max = grid.max_in_box(l, h);
-                (max, if inside && max > 0.0 { grid.min_in_box(l, h) } else { 0.0 })
+                let max = self.max_in_box(l, h);
+                (max, if inside && max > 0.0 { self.min_in_box(l, h) } else { 0.0 })
             })
             .unzip();
         (dims, max_density, min_density)

@@ -77,11 +77,11 @@ pub struct LocalBall {
 }
 
 impl LocalBall {
-    /// The stretch [0, reach] of a ray from the ball's centre (reach at most the
-    /// radius), as a majorant segment with the ball's bounds.
+    /// The stretch [t_min, t_max] of a ray through the ball (within its radius of the
+    /// centre), as a majorant segment with the ball's bounds.
     #[inline(always)]
-    pub fn stretch(&self, reach: f32) -> MajorantSegment {
-        MajorantSegment { t_min: 0.0, t_max: reach, max_density: self.max_density, min_density: self.min_density }
+    pub fn stretch(&self, t_min: f32, t_max: f32) -> MajorantSegment {
+        MajorantSegment { t_min, t_max, max_density: self.max_density, min_density: self.min_density }
     }
 }
 
@@ -655,8 +655,9 @@ impl Medium {
     /// [`Medium::sample_free_flight`], with the brick-bounds test (`BOUNDS`) or without.
     #[inline(always)]
     fn free_flight<const BOUNDS: bool>(&self, o: Vec3, d: Vec3, t_max: f32, rng: &mut Rng) -> FreeFlight {
-        // The same walk as `transmittance_ratio`'s, written out in both: a shared walk
-        // taking the tracker as a closure measured 3 % fewer samples per second.
+        // The same walk as `transmittance_ratio`'s, written out in both: shared, as a
+        // closure taking the tracker or as an iterator over the stretches, it measured
+        // 3 % and 9 % fewer samples per second.
         // A start in a homogeneous block tracks the block's stretch in closed form
         // first; then the local ball around where the ray stands, as one stretch of
         // its cell's majorant and control without the DDA; then the DDA for what gets
@@ -674,7 +675,7 @@ impl Medium {
         }
         if let Some(ball) = self.majorant.local_ball(o + d * start) {
             let reach = (start + ball.radius).min(t_max);
-            let seg = MajorantSegment { t_min: start, ..ball.stretch(reach) };
+            let seg = ball.stretch(start, reach);
             if let Some(t) = self.flight_in::<BOUNDS>(o, d, &seg, rng) {
                 return FreeFlight::Collision { t };
             }
@@ -759,7 +760,7 @@ impl Medium {
         }
         if let Some(ball) = self.majorant.local_ball(o + d * start) {
             let reach = (start + ball.radius).min(t_max);
-            let seg = MajorantSegment { t_min: start, ..ball.stretch(reach) };
+            let seg = ball.stretch(start, reach);
             if !self.ratio_in(o, d, &seg, &mut tr, rng) {
                 return 0.0;
             }
