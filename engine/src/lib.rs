@@ -36,7 +36,7 @@ pub use grid::{Bounds3, DensityGrid, GridError, SparseBuilder};
 pub use integrator::bdpt::BdptSettings;
 pub use integrator::{FirstVertex, Integrator, MisHeuristic, Mode, PathSample, RenderSettings, Technique};
 pub use light::{Sky, Sun};
-pub use medium::{FreeFlight, Medium};
+pub use medium::{FreeFlight, Medium, RATIO_TRACKING_OVERSAMPLING};
 pub use phase::PhaseFunction;
 pub use predictor::{InScatterPredictor, P2pQuery, TransportPredictor};
 pub use render::{PassOutcome, Renderer};

@@ -58,6 +58,12 @@ pub struct BenchRenderArgs {
     /// in voxels.
     #[arg(long, value_delimiter = ',')]
     pub compare_block_cells: Vec<u32>,
+    /// Also render the first configuration with ratio tracking's tentative
+    /// collisions at these multiples of the residual majorant (1: plain ratio
+    /// tracking; the default is engine::RATIO_TRACKING_OVERSAMPLING): the same
+    /// estimate, other variance and cost.
+    #[arg(long, value_delimiter = ',')]
+    pub compare_oversampling: Vec<f32>,
     /// Also render every configuration with trilinear lookups in the trackers (eight
     /// voxels per tentative collision instead of one corner drawn by its weight: the
     /// same estimate, other variance and cost).
@@ -260,6 +266,8 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                 // (each the same medium tracked another way, tagged in its JSON).
                 let block_labels: Vec<String> =
                     args.compare_block_cells.iter().map(|b| format!(" blocks {b}")).collect();
+                let oversampling_labels: Vec<String> =
+                    args.compare_oversampling.iter().map(|m| format!(" oversampling {m}")).collect();
                 let mut variants: Vec<(&str, engine::Medium, Option<(&str, serde_json::Value)>)> = Vec::new();
                 if configs.is_empty() && args.compare_control {
                     variants.push((" no control", medium.clone().without_control(), Some(("control", false.into()))));
@@ -273,6 +281,10 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                 if configs.is_empty() {
                     for (&b, label) in args.compare_block_cells.iter().zip(&block_labels) {
                         variants.push((label, medium.clone().with_block_cells(b), Some(("block_cells", b.into()))));
+                    }
+                    for (&m, label) in args.compare_oversampling.iter().zip(&oversampling_labels) {
+                        let tag = Some(("ratio_oversampling", m.into()));
+                        variants.push((label, medium.clone().with_ratio_oversampling(m), tag));
                     }
                 }
                 if args.compare_lookups {
