@@ -399,9 +399,9 @@ const RATIO_TRACKING_RR_THRESHOLD: f32 = 0.1;
 /// weights of 0, and the estimate is binary (0 or 1) as delta tracking's; at a rate
 /// m times the majorant every weight is at least 1 - 1/m. The relative variance over a
 /// homogeneous residual of optical depth tau is e^(tau / m) - 1 for m tau lookups.
-/// Measured per cloud with `nimbus bench render --compare-oversampling 1,1.5`
-/// (docs/benchmarks.md): at 2, efficiency 1.12x on the hard-edged sphere, 1.05x on
-/// the cumulus, 0.99x on the modeler cloud against 1.
+/// Measured per cloud with `nimbus bench render --compare-oversampling 1`
+/// (docs/benchmarks.md): at 2, efficiency 1.13x on the hard-edged sphere, 1.02x on
+/// the cumulus, 1.00x on the modeler cloud against 1.
 pub const RATIO_TRACKING_OVERSAMPLING: f32 = 2.0;
 
 /// Russian roulette on a ratio-tracking product below [`RATIO_TRACKING_RR_THRESHOLD`]:

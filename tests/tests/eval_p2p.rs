@@ -4,7 +4,7 @@
 //! candidates too, a rerun resumes from the cache, and a missing model is named.
 
 use app::cli::common::{BdptPredictionArgs, RunArgs};
-use app::lab::eval::p2p::{EvalP2pArgs, eval_p2p};
+use app::lab::eval::p2p::{EvalP2pArgs, P2pCell, eval_p2p};
 use std::path::PathBuf;
 
 fn shipped() -> PathBuf {
@@ -16,8 +16,8 @@ fn args(out: PathBuf) -> EvalP2pArgs {
         configs: vec!["backlit".into()],
         k: vec![1, 2],
         size: 32,
-        spp_ref: 512,
-        spp: 256,
+        spp_ref: 2048,
+        spp: 1024,
         p: 1.0,
         bdpt: BdptPredictionArgs { r: Some(0.08), candidates: Some(1), extension_samples: None },
         cloud: "scene-a".into(),
@@ -30,6 +30,25 @@ fn args(out: PathBuf) -> EvalP2pArgs {
     }
 }
 
+/// The network's answer has the right scale: a wrong 1/D^2, a missing beam area or a
+/// double-counted segment is off by a factor of 2 or more (relative bias >= 1), where
+/// the model's own bias is a few percent (docs/point-to-point.md); up to
+/// `MODEL_BIAS` passes. The relative bias (`app::metrics::bias`) averages |N(b, s)|
+/// over the image's 16x16 blocks; by the triangle inequality its expectation is at
+/// most |b| + E|N(0, s)|, the noise floor f, and over n blocks its standard deviation
+/// about f sqrt(pi / 2 - 1) / sqrt(n). The bound adds z of those at family-wise
+/// alpha = 0.01 over the `tests` cells, and the test first asks that the bound can
+/// fail on a factor-2 error (enough samples for the floor).
+const MODEL_BIAS: f64 = 0.25;
+
+fn assert_right_scale(c: &P2pCell, size: u32, tests: usize, what: &str) {
+    let blocks = (size.div_ceil(16) as f64).powi(2);
+    let z = engine::stats::z_bound(0.01, tests);
+    let bound = MODEL_BIAS + c.rel_noise_floor * (1.0 + z * (std::f64::consts::FRAC_PI_2 - 1.0).sqrt() / blocks.sqrt());
+    assert!(bound < 1.0, "{what}: noise floor {} too high to tell a factor of 2 (bound {bound})", c.rel_noise_floor);
+    assert!(c.rel_bias < bound, "{what}: relative bias {} above {bound} (noise floor {})", c.rel_bias, c.rel_noise_floor);
+}
+
 #[test]
 fn small_p2p_evaluation_runs_end_to_end() {
     let tmp = tempfile::tempdir().unwrap();
@@ -40,9 +59,7 @@ fn small_p2p_evaluation_runs_end_to_end() {
     for c in &cells {
         eprintln!("{c:?}");
         assert!(c.mae.is_finite() && c.ttuv_pred_high > 0.0 && c.ttuv_bdpt_high > 0.0 && c.ttuv_pt_full > 0.0, "{c:?}");
-        // The network's answer has the right scale: a wrong 1/D^2, a missing beam
-        // area or a double-counted segment would be off by far more than this.
-        assert!(c.rel_bias < 0.6, "relative bias {} (noise floor {})", c.rel_bias, c.rel_noise_floor);
+        assert_right_scale(c, a.size, 6, &format!("{} k {}", c.model, c.k));
     }
     // The same model twice, under two names, on the same scene: same images.
     assert_eq!(cells[0].mae, cells[1].mae);
@@ -68,7 +85,7 @@ fn small_p2p_evaluation_runs_end_to_end() {
     let resampled = eval_p2p(&m4).unwrap();
     assert_eq!(resampled.len(), 2);
     for c in &resampled {
-        assert!(c.rel_bias < 0.6, "4 candidates: relative bias {} (noise floor {})", c.rel_bias, c.rel_noise_floor);
+        assert_right_scale(c, m4.size, 6, &format!("4 candidates, k {}", c.k));
         assert!(c.variance_ratio > 0.0 && c.secs_estimated > 0.0, "{c:?}");
         assert!(c.secs_free > 0.0 && c.free_ceiling.is_finite() && c.free_ceiling > 0.0, "{c:?}");
     }
