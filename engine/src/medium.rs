@@ -36,7 +36,7 @@ use crate::blocks::HomogeneousBlocks;
 use crate::grid::{Bounds3, DensityGrid, floor_i32};
 use crate::phase::PhaseFunction;
 use crate::rng::Rng;
-use crate::sampling::sample_exponential;
+use crate::sampling::{INV_4PI, sample_exponential};
 use glam::{IVec3, UVec3, Vec3};
 use std::sync::Arc;
 
@@ -379,6 +379,9 @@ pub struct Medium {
     /// Ratio tracking's rate over the residual majorant (at least 1; default
     /// [`RATIO_TRACKING_OVERSAMPLING`]).
     ratio_oversampling: f32,
+    /// The phase value below which next event estimation casts its shadow ray by
+    /// Russian roulette ([`Medium::shadow_roulette_floor`]).
+    shadow_floor: f32,
     albedo: f32,
     phase: PhaseFunction,
 }
@@ -403,6 +406,22 @@ const RATIO_TRACKING_RR_THRESHOLD: f32 = 0.1;
 /// (docs/benchmarks.md): at 2, efficiency 1.13x on the hard-edged sphere, 1.02x on
 /// the cumulus, 1.00x on the modeler cloud against 1.
 pub const RATIO_TRACKING_OVERSAMPLING: f32 = 2.0;
+
+/// Next event estimation casts a shadow ray with probability p / floor where the phase
+/// toward the light p is below the floor, weighted by floor / p (Russian roulette), so
+/// every shadow ray cast carries at least the floor's weight. The floor is the larger
+/// of the isotropic phase 1 / (4 pi) and the phase's peak over this: an isotropic
+/// medium, or a mildly anisotropic one (HG g below about 0.68), casts every shadow ray
+/// toward directions at or above the isotropic value, while a forward-peaked one (g =
+/// 0.85: a peak 82 times the isotropic value, a floor of 5.1 times it) casts few where
+/// they carry little. Measured with `nimbus bench render --compare-shadow-floor 1`
+/// (docs/benchmarks.md, "Shadow-ray roulette by the phase").
+pub const SHADOW_ROULETTE_PEAK_FRACTION: f32 = 16.0;
+
+/// The shadow-roulette floor for `phase` ([`SHADOW_ROULETTE_PEAK_FRACTION`]).
+pub fn default_shadow_floor(phase: PhaseFunction) -> f32 {
+    INV_4PI.max(phase.peak() / SHADOW_ROULETTE_PEAK_FRACTION)
+}
 
 /// Russian roulette on a ratio-tracking product below [`RATIO_TRACKING_RR_THRESHOLD`]:
 /// it survives with probability 1/2 and is doubled. False when it ends.
@@ -452,6 +471,7 @@ impl Medium {
             brick_bounds,
             blocks,
             ratio_oversampling: RATIO_TRACKING_OVERSAMPLING,
+            shadow_floor: default_shadow_floor(phase),
         })
     }
 
@@ -481,6 +501,22 @@ impl Medium {
     /// render --compare-oversampling` and the tests (1 is plain ratio tracking).
     pub fn with_ratio_oversampling(mut self, m: f32) -> Self {
         self.ratio_oversampling = if m.is_finite() { m.max(1.0) } else { 1.0 };
+        self
+    }
+
+    /// The phase value below which next event estimation casts its shadow ray by
+    /// Russian roulette, with probability phase / floor and weight floor / phase
+    /// ([`SHADOW_ROULETTE_PEAK_FRACTION`]).
+    #[inline]
+    pub fn shadow_roulette_floor(&self) -> f32 {
+        self.shadow_floor
+    }
+
+    /// The same medium with the shadow-roulette floor at `floor` (at least 0, where
+    /// every shadow ray is cast): the same estimates with other variance and cost, for
+    /// `nimbus bench render --compare-shadow-floor`.
+    pub fn with_shadow_roulette_floor(mut self, floor: f32) -> Self {
+        self.shadow_floor = if floor.is_finite() { floor.max(0.0) } else { default_shadow_floor(self.phase) };
         self
     }
 
@@ -1118,6 +1154,18 @@ mod tests {
     /// lookup can read there, within the ball's bounds; the balls reach beyond their
     /// own cells where the neighbours allow (a sphere's interior and the shell around
     /// it), and none is given beyond the majorant cells or in an empty cell.
+    /// Isotropic and mildly anisotropic media keep the isotropic floor; a
+    /// forward-peaked one gets its peak over the fraction (5.14 times the isotropic
+    /// phase at g = 0.85: a peak of (1 + g) / (1 - g)^2 = 82.2 times it, over 16).
+    #[test]
+    fn shadow_floor_follows_the_phase_peak() {
+        assert_eq!(default_shadow_floor(PhaseFunction::Isotropic), INV_4PI);
+        assert_eq!(default_shadow_floor(PhaseFunction::HenyeyGreenstein { g: 0.5 }), INV_4PI);
+        let hg = PhaseFunction::HenyeyGreenstein { g: 0.85 };
+        assert_eq!(default_shadow_floor(hg), hg.peak() / SHADOW_ROULETTE_PEAK_FRACTION);
+        assert!((default_shadow_floor(hg) / INV_4PI - 82.2 / 16.0).abs() < 0.01, "{}", default_shadow_floor(hg));
+    }
+
     #[test]
     fn local_balls_bound_the_density_within_them() {
         let unit = Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5));

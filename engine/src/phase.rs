@@ -132,6 +132,12 @@ impl PhaseFunction {
         PhaseSample { wi, pdf: p, p }
     }
 
+    /// The largest value over all directions: straight on or straight back, as every
+    /// phase function here is monotone in the scattering angle (Rayleigh symmetric).
+    pub fn peak(&self) -> f32 {
+        self.eval_cos(-1.0).max(self.eval_cos(1.0))
+    }
+
     /// Mean cosine of the scattering angle (g for HG; 0 for the symmetric ones).
     pub fn mean_cosine(&self) -> f32 {
         match *self {
@@ -184,6 +190,20 @@ mod tests {
             s += if i % 2 == 1 { 4.0 } else { 2.0 } * f(x);
         }
         s * h / 3.0
+    }
+
+    /// The peak is the largest value over a fine sweep of the angle, and HG's equals
+    /// its closed form (1 + |g|) / (4 pi (1 - |g|)^2).
+    #[test]
+    fn peak_is_the_largest_value() {
+        for p in all() {
+            let swept = (0..=20_000).map(|i| p.eval_cos(-1.0 + i as f32 / 10_000.0)).fold(0.0f32, f32::max);
+            assert!((p.peak() - swept).abs() <= 1e-6 * swept, "{p:?}: peak {} against {swept}", p.peak());
+            if let PhaseFunction::HenyeyGreenstein { g } = p {
+                let closed = (1.0 + g.abs()) / (4.0 * PI * (1.0 - g.abs()).powi(2));
+                assert!((p.peak() - closed).abs() <= 1e-5 * closed, "{p:?}: {} against {closed}", p.peak());
+            }
+        }
     }
 
     #[test]

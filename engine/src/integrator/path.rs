@@ -52,12 +52,6 @@ use glam::Vec3;
 /// loses up to 40 % toplit, where the phase toward the sun is small.
 const GUIDE_FLOOR: f32 = 0.1;
 
-/// The phase value below which next event estimation toward the sun plays Russian
-/// roulette ([`next_event`]): the isotropic phase, 1 / (4 pi). Forward-peaked media
-/// (g = 0.85) have most directions below it, and their shadow rays carry little; an
-/// isotropic medium never rouletted.
-const NEE_PHASE_FLOOR: f32 = crate::sampling::INV_4PI;
-
 /// Radiance arriving at `o` from direction `-d` (along the ray o + t d), split by
 /// scattering order: order 0 to `direct`, orders 1 .. k-1 to `low`, >= k to `high`.
 #[inline]
@@ -124,16 +118,18 @@ fn next_event(
     if !(beta > 0.0 && phase > 0.0) {
         return;
     }
-    // Russian roulette on the shadow ray by the phase toward the sun: below the
-    // isotropic phase it is cast with probability phase / floor and weighted by the
-    // inverse, so every shadow ray cast carries at least the isotropic phase's weight.
-    let weight = if phase >= NEE_PHASE_FLOOR {
+    // Russian roulette on the shadow ray by the phase toward the sun: below the floor
+    // (`engine::medium::SHADOW_ROULETTE_PEAK_FRACTION`) it is cast with probability
+    // phase / floor and weighted by the inverse, so every shadow ray cast carries at
+    // least the floor's weight.
+    let floor = scene.medium.shadow_roulette_floor();
+    let weight = if phase >= floor {
         phase
     } else {
-        if rng.uniform() * NEE_PHASE_FLOOR >= phase {
+        if rng.uniform() * floor >= phase {
             return;
         }
-        NEE_PHASE_FLOOR
+        floor
     };
     let tr = scene.medium.transmittance_ratio(x, wi, f32::INFINITY, rng);
     if tr > 0.0 {

@@ -64,6 +64,13 @@ pub struct BenchRenderArgs {
     /// estimate, other variance and cost.
     #[arg(long, value_delimiter = ',')]
     pub compare_oversampling: Vec<f32>,
+    /// Also render the first configuration with next event estimation's
+    /// shadow-roulette floor at these multiples of the isotropic phase 1 / (4 pi) (1:
+    /// every shadow ray toward a direction at or above the isotropic value is cast;
+    /// the default follows the phase's peak, engine::medium::SHADOW_ROULETTE_PEAK_FRACTION):
+    /// the same estimate, other variance and cost.
+    #[arg(long, value_delimiter = ',')]
+    pub compare_shadow_floor: Vec<f32>,
     /// Also render every configuration with trilinear lookups in the trackers (eight
     /// voxels per tentative collision instead of one corner drawn by its weight: the
     /// same estimate, other variance and cost).
@@ -268,6 +275,8 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                     args.compare_block_cells.iter().map(|b| format!(" blocks {b}")).collect();
                 let oversampling_labels: Vec<String> =
                     args.compare_oversampling.iter().map(|m| format!(" oversampling {m}")).collect();
+                let floor_labels: Vec<String> =
+                    args.compare_shadow_floor.iter().map(|f| format!(" shadow floor {f}")).collect();
                 let mut variants: Vec<(&str, engine::Medium, Option<(&str, serde_json::Value)>)> = Vec::new();
                 if configs.is_empty() && args.compare_control {
                     variants.push((" no control", medium.clone().without_control(), Some(("control", false.into()))));
@@ -285,6 +294,11 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                     for (&m, label) in args.compare_oversampling.iter().zip(&oversampling_labels) {
                         let tag = Some(("ratio_oversampling", m.into()));
                         variants.push((label, medium.clone().with_ratio_oversampling(m), tag));
+                    }
+                    for (&f, label) in args.compare_shadow_floor.iter().zip(&floor_labels) {
+                        let tag = Some(("shadow_floor", f.into()));
+                        let floor = f * engine::sampling::INV_4PI;
+                        variants.push((label, medium.clone().with_shadow_roulette_floor(floor), tag));
                     }
                 }
                 if args.compare_lookups {
