@@ -46,7 +46,12 @@ fn assert_right_scale(c: &P2pCell, size: u32, tests: usize, what: &str) {
     let z = engine::stats::z_bound(0.01, tests);
     let bound = MODEL_BIAS + c.rel_noise_floor * (1.0 + z * (std::f64::consts::FRAC_PI_2 - 1.0).sqrt() / blocks.sqrt());
     assert!(bound < 1.0, "{what}: noise floor {} too high to tell a factor of 2 (bound {bound})", c.rel_noise_floor);
-    assert!(c.rel_bias < bound, "{what}: relative bias {} above {bound} (noise floor {})", c.rel_bias, c.rel_noise_floor);
+    assert!(
+        c.rel_bias < bound,
+        "{what}: relative bias {} above {bound} (noise floor {})",
+        c.rel_bias,
+        c.rel_noise_floor
+    );
 }
 
 #[test]

@@ -328,11 +328,10 @@ fn tracking_estimators_match_closed_form() {
 #[test]
 fn oversampled_ratio_tracking_lowers_the_variance_through_a_hard_edge() {
     let b = engine::Bounds3::new(Vec3::splat(-1.0), Vec3::splat(1.0));
-    let grid = engine::DensityGrid::from_fn(glam::UVec3::splat(32), b, |p| if p.y.abs() < 0.25 { 1.0 } else { 0.0 })
-        .unwrap();
-    let medium = Medium::with_majorant_cells(Arc::new(grid), 2.0, 1.0, PhaseFunction::Isotropic, 64)
-        .unwrap()
-        .without_blocks();
+    let grid =
+        engine::DensityGrid::from_fn(glam::UVec3::splat(32), b, |p| if p.y.abs() < 0.25 { 1.0 } else { 0.0 }).unwrap();
+    let medium =
+        Medium::with_majorant_cells(Arc::new(grid), 2.0, 1.0, PhaseFunction::Isotropic, 64).unwrap().without_blocks();
     let (o, d) = (Vec3::new(0.1, -0.9, 0.2), Vec3::Y);
     // Eight voxels of 1 and a ramp of one voxel at each face: optical depth 2 x 0.5.
     let exact = (-1.0f64).exp();
@@ -353,7 +352,10 @@ fn oversampled_ratio_tracking_lowers_the_variance_through_a_hard_edge() {
     let ((m1, s1, e1), (m2, s2, e2)) = (second[0], second[1]);
     // Binary: the second moment is about the mean itself; oversampled, well below.
     assert!(s1 > 0.9 * m1, "at the majorant: E[T^2] {s1} against E[T] {m1}");
-    assert!(s1 - s2 > z * (e1 * e1 + e2 * e2).sqrt(), "E[T^2] at the majorant {s1} (se {e1}), at twice it {s2} (se {e2})");
+    assert!(
+        s1 - s2 > z * (e1 * e1 + e2 * e2).sqrt(),
+        "E[T^2] at the majorant {s1} (se {e1}), at twice it {s2} (se {e2})"
+    );
     assert!(s2 - m2 * m2 < 0.5 * (s1 - m1 * m1), "variance {} oversampled against {}", s2 - m2 * m2, s1 - m1 * m1);
 }
 
