@@ -271,46 +271,52 @@ pub fn bench_render(args: BenchRenderArgs) -> Result<()> {
                 info["majorant_cells"] = c.into();
                 // The measured configuration last, after the baselines asked for
                 // (each the same medium tracked another way, tagged in its JSON).
-                let block_labels: Vec<String> =
-                    args.compare_block_cells.iter().map(|b| format!(" blocks {b}")).collect();
-                let oversampling_labels: Vec<String> =
-                    args.compare_oversampling.iter().map(|m| format!(" oversampling {m}")).collect();
-                let floor_labels: Vec<String> =
-                    args.compare_shadow_floor.iter().map(|f| format!(" shadow floor {f}")).collect();
-                let mut variants: Vec<(&str, engine::Medium, Option<(&str, serde_json::Value)>)> = Vec::new();
+                let mut variants: Vec<(String, engine::Medium, Option<(&str, serde_json::Value)>)> = Vec::new();
                 if configs.is_empty() && args.compare_control {
-                    variants.push((" no control", medium.clone().without_control(), Some(("control", false.into()))));
+                    let tag = Some(("control", false.into()));
+                    variants.push((" no control".into(), medium.clone().without_control(), tag));
                 }
                 if configs.is_empty() && args.compare_balls {
-                    variants.push((" no balls", medium.clone().without_local_balls(), Some(("balls", false.into()))));
+                    let tag = Some(("balls", false.into()));
+                    variants.push((" no balls".into(), medium.clone().without_local_balls(), tag));
                 }
                 if args.compare_blocks {
-                    variants.push((" no blocks", medium.clone().without_blocks(), Some(("blocks", false.into()))));
+                    variants.push((
+                        " no blocks".into(),
+                        medium.clone().without_blocks(),
+                        Some(("blocks", false.into())),
+                    ));
                 }
                 if configs.is_empty() {
-                    for (&b, label) in args.compare_block_cells.iter().zip(&block_labels) {
-                        variants.push((label, medium.clone().with_block_cells(b), Some(("block_cells", b.into()))));
+                    for &b in &args.compare_block_cells {
+                        let tag = Some(("block_cells", b.into()));
+                        variants.push((format!(" blocks {b}"), medium.clone().with_block_cells(b), tag));
                     }
-                    for (&m, label) in args.compare_oversampling.iter().zip(&oversampling_labels) {
+                    for &m in &args.compare_oversampling {
                         let tag = Some(("ratio_oversampling", m.into()));
-                        variants.push((label, medium.clone().with_ratio_oversampling(m), tag));
+                        variants.push((format!(" oversampling {m}"), medium.clone().with_ratio_oversampling(m), tag));
                     }
-                    for (&f, label) in args.compare_shadow_floor.iter().zip(&floor_labels) {
+                    for &f in &args.compare_shadow_floor {
                         let tag = Some(("shadow_floor", f.into()));
                         let floor = f * engine::sampling::INV_4PI;
-                        variants.push((label, medium.clone().with_shadow_roulette_floor(floor), tag));
+                        variants.push((
+                            format!(" shadow floor {f}"),
+                            medium.clone().with_shadow_roulette_floor(floor),
+                            tag,
+                        ));
                     }
                 }
                 if args.compare_lookups {
                     let tag = Some(("lookups", "trilinear".into()));
-                    variants.push((" trilinear", medium.clone().with_trilinear_lookups(), tag));
+                    variants.push((" trilinear".into(), medium.clone().with_trilinear_lookups(), tag));
                 }
                 if args.compare_bounds && g.is_sparse() {
                     let on = !medium.uses_brick_bounds();
                     let suffix = if on { " bounds on" } else { " bounds off" };
-                    variants.push((suffix, medium.clone().with_brick_bounds(on), Some(("brick_bounds", on.into()))));
+                    let tag = Some(("brick_bounds", on.into()));
+                    variants.push((suffix.into(), medium.clone().with_brick_bounds(on), tag));
                 }
-                variants.push(("", medium, None));
+                variants.push((String::new(), medium, None));
                 for (suffix, medium, tag) in variants {
                     let mut info = info.clone();
                     if let Some((key, value)) = tag {
