@@ -37,6 +37,19 @@ pub struct Renderer {
     integrator: Integrator,
     film: Arc<RwLock<Film>>,
     tiles: Vec<(u32, u32, u32, u32)>,
+    /// The sample buffers of the last batch, kept for the next one (see [`Scratch`]).
+    scratch: Scratch,
+}
+
+/// A batch's sample buffers: one per tile of every pass, then one per pass in pixel
+/// order. The renderer keeps them from batch to batch: allocated anew for each, the
+/// few megabytes a batch takes went back to the operating system when freed (the
+/// allocator trims its heap) and came back as page faults, 5 % of a render's time at
+/// 256x256.
+#[derive(Default)]
+struct Scratch {
+    tiles: Vec<Vec<PathSample>>,
+    passes: Vec<Vec<PathSample>>,
 }
 
 impl Renderer {
@@ -49,7 +62,7 @@ impl Renderer {
                 tiles.push((x0, y0, (x0 + TILE_SIZE).min(w), (y0 + TILE_SIZE).min(h)));
             }
         }
-        Ok(Renderer { film: Arc::new(RwLock::new(Film::new(w, h))), scene, integrator, tiles })
+        Ok(Renderer { film: Arc::new(RwLock::new(Film::new(w, h))), scene, integrator, tiles, scratch: Scratch::default() })
     }
 
     pub fn scene(&self) -> &Arc<Scene> {
@@ -92,11 +105,14 @@ impl Renderer {
     /// abandons the whole batch.
     pub fn render_passes(&mut self, count: u32, control: &RenderControl, generation: u64) -> PassOutcome {
         let first = self.spp();
-        let Some(passes) = self.render_passes_samples(first, count.max(1), control, generation) else {
-            return PassOutcome::Cancelled;
-        };
-        self.film.write().unwrap_or_else(|e| e.into_inner()).add_passes(&passes);
-        PassOutcome::Completed
+        let count = count.max(1);
+        let mut scratch = std::mem::take(&mut self.scratch);
+        let done = self.render_into(first, count, control, generation, &mut scratch);
+        if done {
+            self.film.write().unwrap_or_else(|e| e.into_inner()).add_passes(&scratch.passes[..count as usize]);
+        }
+        self.scratch = scratch;
+        if done { PassOutcome::Completed } else { PassOutcome::Cancelled }
     }
 
     /// Renders pass number `pass` and returns its samples in pixel order, or None if
@@ -114,46 +130,63 @@ impl Renderer {
         control: &RenderControl,
         generation: u64,
     ) -> Option<Vec<Vec<PathSample>>> {
+        let count = count.max(1);
+        let mut scratch = Scratch::default();
+        self.render_into(first, count, control, generation, &mut scratch).then(|| {
+            scratch.passes.truncate(count as usize);
+            scratch.passes
+        })
+    }
+
+    /// Renders passes `first .. first + count` into `scratch.passes[..count]`, each in
+    /// pixel order, in the memory the buffers already hold; false if cancelled (the
+    /// buffers' contents are then undefined).
+    fn render_into(&self, first: u32, count: u32, control: &RenderControl, generation: u64, scratch: &mut Scratch) -> bool {
         let camera = &self.scene.camera;
         let (w, h) = (camera.width(), camera.height());
         // BDPT's prediction mode: each pass's samples share one pool of light subpath
         // candidates.
         let pools: Vec<_> = (0..count).map(|i| self.integrator.light_pool(&self.scene, first + i, w * h)).collect();
         let nt = self.tiles.len();
-        let tiles: Vec<Vec<PathSample>> = (0..count as usize * nt)
-            .into_par_iter()
-            .map(|i| {
-                let (p, t) = (i / nt, i % nt);
-                self.render_tile(first + p as u32, self.tiles[t], pools[p].as_ref(), control, generation)
-            })
-            .collect::<Option<Vec<_>>>()?;
+        let n = count as usize * nt;
+        if scratch.tiles.len() < n {
+            scratch.tiles.resize_with(n, Vec::new);
+        }
+        let tiles = &mut scratch.tiles[..n];
+        let done = tiles.par_iter_mut().enumerate().all(|(i, out)| {
+            let (p, t) = (i / nt, i % nt);
+            self.render_tile(first + p as u32, self.tiles[t], pools[p].as_ref(), control, generation, out)
+        });
+        if !done {
+            return false;
+        }
         // Each pass in pixel order, assembled by bands of one tile row in parallel (the
         // tiles are in row-major order, a band's tiles consecutive).
+        if scratch.passes.len() < count as usize {
+            scratch.passes.resize_with(count as usize, Vec::new);
+        }
         let band = (TILE_SIZE * w) as usize;
         let tiles_per_band = w.div_ceil(TILE_SIZE) as usize;
-        let out = tiles
-            .par_chunks(nt)
-            .map(|pass_tiles| {
-                let mut samples = vec![PathSample::default(); (w * h) as usize];
-                samples.par_chunks_mut(band).zip(pass_tiles.par_chunks(tiles_per_band)).enumerate().for_each(
-                    |(b, (dst, band_tiles))| {
-                        let first = b * tiles_per_band;
-                        for (&(x0, y0, x1, _), tile) in self.tiles[first..].iter().zip(band_tiles) {
-                            let tw = (x1 - x0) as usize;
-                            for (row, chunk) in tile.chunks(tw).enumerate() {
-                                let start = (y0 as usize - b * TILE_SIZE as usize + row) * w as usize + x0 as usize;
-                                dst[start..start + tw].copy_from_slice(chunk);
-                            }
+        scratch.passes[..count as usize].par_iter_mut().zip(tiles.par_chunks(nt)).for_each(|(samples, pass_tiles)| {
+            samples.resize((w * h) as usize, PathSample::default());
+            samples.par_chunks_mut(band).zip(pass_tiles.par_chunks(tiles_per_band)).enumerate().for_each(
+                |(b, (dst, band_tiles))| {
+                    let first = b * tiles_per_band;
+                    for (&(x0, y0, x1, _), tile) in self.tiles[first..].iter().zip(band_tiles) {
+                        let tw = (x1 - x0) as usize;
+                        for (row, chunk) in tile.chunks(tw).enumerate() {
+                            let start = (y0 as usize - b * TILE_SIZE as usize + row) * w as usize + x0 as usize;
+                            dst[start..start + tw].copy_from_slice(chunk);
                         }
-                    },
-                );
-                samples
-            })
-            .collect();
-        Some(out)
+                    }
+                },
+            );
+        });
+        true
     }
 
-    /// One tile of one pass, rows in order; None if cancelled. Pixel samples use the
+    /// One tile of one pass into `out` (cleared first), rows in order; false if
+    /// cancelled. Pixel samples use the
     /// stream (seed, pass, pixel), the preview's per-pixel rotation (seed,
     /// [`PREVIEW_SHIFT`], pixel).
     fn render_tile(
@@ -163,11 +196,13 @@ impl Renderer {
         pool: Option<&crate::integrator::bdpt::LightPool>,
         control: &RenderControl,
         generation: u64,
-    ) -> Option<Vec<PathSample>> {
+        out: &mut Vec<PathSample>,
+    ) -> bool {
         let camera = &self.scene.camera;
         let w = camera.width();
         let seed = self.integrator.settings().seed;
-        let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
+        out.clear();
+        out.reserve(((x1 - x0) * (y1 - y0)) as usize);
         // The preview's three dimensions (pixel position, march offset) follow a
         // Halton sequence over the passes, rotated per pixel: its passes tile each
         // pixel and each march step evenly, so its image settles faster than with
@@ -178,7 +213,7 @@ impl Renderer {
         for y in y0..y1 {
             // Checked per row, so a stop acts within one row of samples.
             if control.should_abort(generation) {
-                return None;
+                return false;
             }
             for x in x0..x1 {
                 let pixel = y as u64 * w as u64 + x as u64;
@@ -199,7 +234,7 @@ impl Renderer {
                 }
             }
         }
-        self.integrator.resolve_deferred(&self.scene, &mut deferred, &mut out);
-        Some(out)
+        self.integrator.resolve_deferred(&self.scene, &mut deferred, out);
+        true
     }
 }

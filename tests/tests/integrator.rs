@@ -203,10 +203,15 @@ fn deterministic_across_thread_counts() {
     let c = render(&scene, RenderSettings { seed: 1235, ..settings }, None, 3);
     assert!(a.sums(Buffer::Full) != c.sums(Buffer::Full), "the seed matters");
     // Passes rendered as one batch (the tiles of all three in one pool of work) add
-    // up to the same film as single passes, on two threads.
+    // up to the same film as single passes, on two threads; the renderer reuses its
+    // batch buffers, so a smaller batch after a larger one, and a cancelled batch
+    // between them, must not change it.
     let mut r = Renderer::new(scene.clone(), Integrator::new(settings, None).unwrap()).unwrap();
     let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
     pool.install(|| r.render_passes(2, &RenderControl::new(), 0));
+    let stale = RenderControl::new();
+    stale.bump();
+    assert_eq!(pool.install(|| r.render_passes(4, &stale, 0)), engine::PassOutcome::Cancelled);
     pool.install(|| r.render_passes(1, &RenderControl::new(), 0));
     let batched = r.snapshot();
     assert_eq!(batched.spp(), 3);
