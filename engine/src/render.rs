@@ -62,7 +62,13 @@ impl Renderer {
                 tiles.push((x0, y0, (x0 + TILE_SIZE).min(w), (y0 + TILE_SIZE).min(h)));
             }
         }
-        Ok(Renderer { film: Arc::new(RwLock::new(Film::new(w, h))), scene, integrator, tiles, scratch: Scratch::default() })
+        Ok(Renderer {
+            film: Arc::new(RwLock::new(Film::new(w, h))),
+            scene,
+            integrator,
+            tiles,
+            scratch: Scratch::default(),
+        })
     }
 
     pub fn scene(&self) -> &Arc<Scene> {
@@ -141,7 +147,14 @@ impl Renderer {
     /// Renders passes `first .. first + count` into `scratch.passes[..count]`, each in
     /// pixel order, in the memory the buffers already hold; false if cancelled (the
     /// buffers' contents are then undefined).
-    fn render_into(&self, first: u32, count: u32, control: &RenderControl, generation: u64, scratch: &mut Scratch) -> bool {
+    fn render_into(
+        &self,
+        first: u32,
+        count: u32,
+        control: &RenderControl,
+        generation: u64,
+        scratch: &mut Scratch,
+    ) -> bool {
         let camera = &self.scene.camera;
         let (w, h) = (camera.width(), camera.height());
         // BDPT's prediction mode: each pass's samples share one pool of light subpath
