@@ -73,6 +73,20 @@ impl Film {
         Film { width, height, spp: 0, layers: std::array::from_fn(|_| Layer::new(n)), rejected: 0 }
     }
 
+    /// Makes this film a copy of `other`, in the memory it already holds where the
+    /// sizes agree (a render worker that publishes a copy per pass reuses the copies
+    /// the viewer has let go of, rather than allocating the buffers anew).
+    pub fn copy_from(&mut self, other: &Film) {
+        self.width = other.width;
+        self.height = other.height;
+        self.spp = other.spp;
+        self.rejected = other.rejected;
+        for (a, b) in self.layers.iter_mut().zip(&other.layers) {
+            a.sum.clone_from(&b.sum);
+            a.sum_sq.clone_from(&b.sum_sq);
+        }
+    }
+
     pub fn width(&self) -> u32 {
         self.width
     }
@@ -252,6 +266,30 @@ mod tests {
         for b in Buffer::ALL {
             assert!(one.sums(b) == batch.sums(b), "{b:?}");
             assert!(one.layers[b.index()].sum_sq == batch.layers[b.index()].sum_sq, "{b:?}");
+        }
+    }
+
+    /// A copy into a film of another size, or of the same size (its memory reused),
+    /// equals the source in every sum, count and dimension.
+    #[test]
+    fn copy_from_equals_the_source() {
+        let mut src = Film::new(3, 2);
+        let s = PathSample { direct: Vec3::splat(0.5), low: Vec3::new(1.0, 2.0, 3.0), high: Vec3::NAN };
+        src.add_pass(&[s; 6]);
+        src.add_pass(&[PathSample { high: Vec3::ONE, ..s }; 6]);
+        for mut dst in [Film::new(1, 1), Film::new(3, 2), Film::new(8, 8)] {
+            dst.add_pass(&vec![PathSample { low: Vec3::splat(9.0), ..Default::default() }; dst.pixel_count()]);
+            let before = dst.layers[0].sum.as_ptr();
+            let same_size = dst.pixel_count() == src.pixel_count();
+            dst.copy_from(&src);
+            assert_eq!((dst.width(), dst.height(), dst.spp(), dst.rejected_samples()), (3, 2, 2, 6));
+            for b in Buffer::ALL {
+                assert!(dst.sums(b) == src.sums(b), "{b:?}");
+                assert!(dst.layers[b.index()].sum_sq == src.layers[b.index()].sum_sq, "{b:?}");
+            }
+            if same_size {
+                assert_eq!(dst.layers[0].sum.as_ptr(), before, "the same size reuses the memory");
+            }
         }
     }
 

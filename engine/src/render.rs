@@ -88,6 +88,11 @@ impl Renderer {
         self.film.read().unwrap_or_else(|e| e.into_inner()).clone()
     }
 
+    /// [`Renderer::snapshot`] into `dst`, in the memory `dst` already holds.
+    pub fn snapshot_into(&self, dst: &mut Film) {
+        dst.copy_from(&self.film.read().unwrap_or_else(|e| e.into_inner()));
+    }
+
     pub fn spp(&self) -> u32 {
         self.film.read().unwrap_or_else(|e| e.into_inner()).spp()
     }

@@ -208,6 +208,49 @@ pub struct Mailbox {
     pub error: Option<(u64, String)>,
     /// Set while a cloud is being rebuilt.
     pub building: bool,
+    /// Films of earlier publications, for the worker's next copies ([`copy_film`]).
+    spare: Vec<Arc<Film>>,
+}
+
+/// Films kept for reuse: a publication's film and reference.
+const SPARE_FILMS: usize = 4;
+
+impl Mailbox {
+    /// Makes `p` the latest publication; the films it replaces are kept for
+    /// [`copy_film`].
+    fn publish(&mut self, p: Published) {
+        if let Some(old) = self.latest.replace(p) {
+            self.spare.push(old.film);
+            self.spare.extend(old.reference);
+            let excess = self.spare.len().saturating_sub(SPARE_FILMS);
+            self.spare.drain(..excess);
+        }
+    }
+}
+
+/// A copy of `r`'s film to publish: into a film of an earlier publication that no one
+/// holds any more where there is one (a 256x256 film is 12 MiB, and a copy allocated
+/// per pass came back as page faults, one core idle while they were served), else
+/// newly allocated.
+fn copy_film(mailbox: &Mutex<Mailbox>, r: &Renderer) -> Arc<Film> {
+    let spare = std::mem::take(&mut mailbox.lock().unwrap().spare);
+    let mut found = None;
+    let mut keep = Vec::new();
+    for mut film in spare {
+        if found.is_none() {
+            if let Some(f) = Arc::get_mut(&mut film) {
+                r.snapshot_into(f);
+                found = Some(film);
+                continue;
+            }
+        }
+        keep.push(film);
+    }
+    // Films the viewer still holds go back for a later copy.
+    let mut mb = mailbox.lock().unwrap();
+    keep.append(&mut mb.spare);
+    mb.spare = keep;
+    found.unwrap_or_else(|| Arc::new(r.snapshot()))
 }
 
 /// Resolution used for the cloud while a slider moves.
@@ -339,7 +382,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                         // the full one in the loop.
                         if let Some(film) = quarter_pass(&pr, &control, generation) {
                             let which = Some((FIRST_LOOK, None));
-                            publish_film(&mailbox, generation, film, &pr, which, start, coarse_grid);
+                            publish_film(&mailbox, generation, Arc::new(film), &pr, which, start, coarse_grid);
                             wake();
                         }
                         // The learned preview follows unless a slider is moving or it
@@ -458,7 +501,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             }
             j.standing = None;
         }
-        let film = Arc::new(j.main.snapshot());
+        let film = copy_film(&mailbox, &j.main);
         // Both renders' camera samples in compare mode.
         let passes = film.spp() as f64 * if j.reference.is_some() { 2.0 } else { 1.0 };
         let published = Published {
@@ -471,12 +514,12 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
             mode: j.main.integrator().settings().mode,
             is_preview: is_preview(&j.main),
             reference_noise: j.reference.as_ref().map(film_noise),
-            reference: j.reference.as_ref().map(|r| Arc::new(r.snapshot())),
+            reference: j.reference.as_ref().map(|r| copy_film(&mailbox, r)),
             standing_in: None,
             progress,
             done,
         };
-        mailbox.lock().unwrap().latest = Some(published);
+        mailbox.lock().unwrap().publish(published);
         wake();
         if done {
             // Finished: idle until the next change or a new target, keeping the film.
@@ -497,7 +540,7 @@ fn publish_preview(
     start: Instant,
     coarse: bool,
 ) {
-    publish_film(mailbox, generation, r.snapshot(), r, Some((which, under)), start, coarse);
+    publish_film(mailbox, generation, copy_film(mailbox, r), r, Some((which, under)), start, coarse);
 }
 
 /// One pass of `full`'s scene at a quarter of its resolution (None if the image is
@@ -517,19 +560,19 @@ fn quarter_pass(full: &Renderer, control: &RenderControl, generation: u64) -> Op
 fn publish_film(
     mailbox: &Mutex<Mailbox>,
     generation: u64,
-    film: Film,
+    film: Arc<Film>,
     r: &Renderer,
     standing_in: Option<(&'static str, Option<f64>)>,
     start: Instant,
     coarse: bool,
 ) {
     let secs = start.elapsed().as_secs_f64();
-    mailbox.lock().unwrap().latest = Some(Published {
+    mailbox.lock().unwrap().publish(Published {
         generation,
         samples_per_sec: film.spp() as f64 * film.pixel_count() as f64 / secs.max(1e-9),
         noise: relative_noise(&film),
         render_secs: secs,
-        film: Arc::new(film),
+        film,
         coarse,
         mode: r.integrator().settings().mode,
         is_preview: is_preview(r),
@@ -597,5 +640,70 @@ impl Drop for WorkerHandle {
         if let Some(t) = self.thread.take() {
             let _ = t.join();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn renderer() -> Renderer {
+        let grid = engine::DensityGrid::from_fn(
+            glam::UVec3::splat(8),
+            engine::Bounds3::new(glam::Vec3::splat(-0.5), glam::Vec3::splat(0.5)),
+            |p| if p.length() < 0.4 { 1.0 } else { 0.0 },
+        )
+        .unwrap();
+        let medium = engine::Medium::new(Arc::new(grid), 10.0, 1.0, engine::PhaseFunction::Isotropic).unwrap();
+        let camera =
+            engine::Camera::new(glam::Vec3::new(0.0, 0.0, 3.0), glam::Vec3::ZERO, glam::Vec3::Y, 30.0, 16, 16).unwrap();
+        let sun = engine::Sun::new(glam::Vec3::NEG_Y, glam::Vec3::ONE, 0.0).unwrap();
+        let scene = engine::Scene { camera, medium, sun: Some(sun), sky: engine::Sky::default() };
+        Renderer::new(Arc::new(scene), engine::Integrator::new(Default::default(), None).unwrap()).unwrap()
+    }
+
+    fn published(film: Arc<Film>) -> Published {
+        Published {
+            generation: 0,
+            film,
+            render_secs: 0.0,
+            samples_per_sec: 0.0,
+            noise: 0.0,
+            coarse: false,
+            mode: engine::Mode::Reference,
+            is_preview: false,
+            reference: None,
+            standing_in: None,
+            reference_noise: None,
+            progress: None,
+            done: false,
+        }
+    }
+
+    /// A published film that no one holds any more receives the next copy in its own
+    /// memory; one the viewer still holds is left alone and a new film is made.
+    #[test]
+    fn copies_reuse_the_films_the_viewer_let_go() {
+        let mut r = renderer();
+        r.render_pass(&RenderControl::new(), 0);
+        let mailbox = Mutex::new(Mailbox::default());
+        let first = copy_film(&mailbox, &r);
+        let first_ptr = Arc::as_ptr(&first);
+        mailbox.lock().unwrap().publish(published(first));
+        // Held by the viewer: the next copy is a new film.
+        let held = mailbox.lock().unwrap().latest.as_ref().unwrap().film.clone();
+        let second = copy_film(&mailbox, &r);
+        assert_ne!(Arc::as_ptr(&second), first_ptr);
+        mailbox.lock().unwrap().publish(published(second));
+        drop(held);
+        // The first film, replaced and let go, takes the next copy, equal to the
+        // renderer's film.
+        r.render_pass(&RenderControl::new(), 0);
+        let third = copy_film(&mailbox, &r);
+        assert_eq!(Arc::as_ptr(&third), first_ptr);
+        let now = r.snapshot();
+        assert_eq!(third.spp(), 2);
+        assert!(third.sums(Buffer::Full) == now.sums(Buffer::Full));
+        assert!(mailbox.lock().unwrap().spare.len() <= SPARE_FILMS);
     }
 }
