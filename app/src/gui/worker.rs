@@ -213,7 +213,7 @@ pub struct Mailbox {
 }
 
 /// Films kept for reuse: a publication's film and reference.
-const SPARE_FILMS: usize = 4;
+const SPARE_FILMS: usize = 2;
 
 impl Mailbox {
     /// Makes `p` the latest publication; the films it replaces are kept for
