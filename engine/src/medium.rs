@@ -1150,10 +1150,6 @@ mod tests {
         }
     }
 
-    /// Every point within a local ball has its density, and every voxel a one-voxel
-    /// lookup can read there, within the ball's bounds; the balls reach beyond their
-    /// own cells where the neighbours allow (a sphere's interior and the shell around
-    /// it), and none is given beyond the majorant cells or in an empty cell.
     /// Isotropic and mildly anisotropic media keep the isotropic floor; a
     /// forward-peaked one gets its peak over the fraction (5.14 times the isotropic
     /// phase at g = 0.85: a peak of (1 + g) / (1 - g)^2 = 82.2 times it, over 16).
@@ -1166,6 +1162,10 @@ mod tests {
         assert!((default_shadow_floor(hg) / INV_4PI - 82.2 / 16.0).abs() < 0.01, "{}", default_shadow_floor(hg));
     }
 
+    /// Every point within a local ball has its density, and every voxel a one-voxel
+    /// lookup can read there, within the ball's bounds; the balls reach beyond their
+    /// own cells where the neighbours allow (a sphere's interior and the shell around
+    /// it), and none is given beyond the majorant cells or in an empty cell.
     #[test]
     fn local_balls_bound_the_density_within_them() {
         let unit = Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5));

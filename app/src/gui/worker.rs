@@ -233,24 +233,19 @@ impl Mailbox {
 /// per pass came back as page faults, one core idle while they were served), else
 /// newly allocated.
 fn copy_film(mailbox: &Mutex<Mailbox>, r: &Renderer) -> Arc<Film> {
-    let spare = std::mem::take(&mut mailbox.lock().unwrap().spare);
-    let mut found = None;
-    let mut keep = Vec::new();
-    for mut film in spare {
-        if found.is_none() {
-            if let Some(f) = Arc::get_mut(&mut film) {
-                r.snapshot_into(f);
-                found = Some(film);
-                continue;
-            }
+    // Only the worker reaches the spares, so a count of one cannot rise again once
+    // the lock is released.
+    let free = {
+        let mut mb = mailbox.lock().unwrap();
+        mb.spare.iter().position(|f| Arc::strong_count(f) == 1).map(|i| mb.spare.swap_remove(i))
+    };
+    if let Some(mut film) = free {
+        if let Some(f) = Arc::get_mut(&mut film) {
+            r.snapshot_into(f);
+            return film;
         }
-        keep.push(film);
     }
-    // Films the viewer still holds go back for a later copy.
-    let mut mb = mailbox.lock().unwrap();
-    keep.append(&mut mb.spare);
-    mb.spare = keep;
-    found.unwrap_or_else(|| Arc::new(r.snapshot()))
+    Arc::new(r.snapshot())
 }
 
 /// Resolution used for the cloud while a slider moves.
