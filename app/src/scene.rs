@@ -285,10 +285,12 @@ pub struct RenderDesc {
     /// et al. 2013).
     #[serde(skip_serializing_if = "is_learned")]
     pub preview: String,
-    /// Nodes per axis of the learned preview's multiple-scattering lattice, 2 ..= 128.
-    /// Default 96 (each node evaluated when the preview first reads it).
-    #[serde(skip_serializing_if = "is_default_preview_nodes")]
-    pub preview_nodes: u32,
+    /// Nodes per axis, at most, of the learned preview's multiple-scattering lattice,
+    /// 2 ..= 256 (at most one per voxel; each node evaluated when the preview first
+    /// reads it). Default (unset): 96, finer over optically thick clouds, up to 192
+    /// and two per voxel (engine::integrator::preview::Preview::default_lattice).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub preview_nodes: Option<u32>,
     /// Prediction at bounce 1 reads the model's answers from a lattice toward the
     /// camera of at most this many nodes per axis, filled as the paths read it
     /// (engine::integrator::preview::CameraLatticePredictor), instead of evaluating
@@ -331,10 +333,6 @@ fn is_default_prediction_lattice(n: &u32) -> bool {
     *n == DEFAULT_PREDICTION_LATTICE
 }
 
-fn is_default_preview_nodes(n: &u32) -> bool {
-    *n == DEFAULT_PREVIEW_NODES
-}
-
 fn is_default_octaves(n: &u32) -> bool {
     *n == 3
 }
@@ -342,15 +340,6 @@ fn is_default_octaves(n: &u32) -> bool {
 fn is_half(v: &f32) -> bool {
     *v == 0.5
 }
-
-/// Nodes per axis of the learned preview's lattice by default. The lattice is lazy,
-/// so the nodes cost what the preview's marches read, and they are most of the first
-/// pass (the model at each node). On the nine cells of docs/evaluation.md (256x256,
-/// 128^3 clouds) 96 nodes reach the floors of 128 within 0.2 points in eight cells
-/// (1.1 points higher in scene C backlit) and 5 % in about 0.6 of the time (scene A
-/// frontlit 0.55 s against 1.06 s); 64 nodes lose 1 - 6 points backlit, where the
-/// image is the bright fringe, and 48 lost 2 - 13.
-pub const DEFAULT_PREVIEW_NODES: u32 = 96;
 
 /// Nodes per axis, at most, of prediction's lattice at bounce 1, by default.
 pub const DEFAULT_PREDICTION_LATTICE: u32 = 128;
@@ -425,7 +414,7 @@ impl Default for RenderDesc {
             candidates: engine::integrator::bdpt::Prediction::DEFAULT_CANDIDATES,
             extension_samples: engine::integrator::bdpt::Prediction::DEFAULT_EXTENSION_SAMPLES,
             preview: "learned".into(),
-            preview_nodes: DEFAULT_PREVIEW_NODES,
+            preview_nodes: None,
             prediction_lattice: DEFAULT_PREDICTION_LATTICE,
             first_vertex: FirstVertexChoice::Guided.name().into(),
             octaves: 3,
@@ -644,8 +633,8 @@ impl SceneFile {
         if self.render.prediction_lattice == 1 || self.render.prediction_lattice > 256 {
             return Err(range_err("render.prediction_lattice", self.render.prediction_lattice, "0 or 2 ..= 256"));
         }
-        if !(2..=128).contains(&self.render.preview_nodes) {
-            return Err(range_err("render.preview_nodes", self.render.preview_nodes, "2 ..= 128"));
+        if let Some(n) = self.render.preview_nodes.filter(|n| !(2..=256).contains(n)) {
+            return Err(range_err("render.preview_nodes", n, "2 ..= 256"));
         }
         if !(1..=9).contains(&self.render.octaves) {
             return Err(range_err("render.octaves", self.render.octaves, "1 ..= 9"));
@@ -993,7 +982,7 @@ impl SceneFile {
     /// for the same cloud, rho and sun) and the higher orders by `render.preview`; the
     /// learned ones use the model of prediction mode bound with fields of at most
     /// `max_nodes` nodes per axis (cached as in prediction mode) on a lattice of
-    /// `render.preview_nodes`. A model that cannot be loaded falls back to the octave
+    /// `render.preview_nodes` (the default lattice when unset). A model that cannot be loaded falls back to the octave
     /// approximation, with a warning.
     fn preview(
         &self,
@@ -1366,12 +1355,23 @@ mod tests {
             ("[medium]\nrho = -2\n", "medium.rho = -2 is out of range: 0 ..= 10000"),
             ("[camera]\nfov_y_deg = 0\n", "camera.fov_y_deg = 0 is out of range: 1 ..= 170"),
             ("[render]\np = 0\n", "render.p = 0 is out of range: (0, 1]"),
+            ("[render]\npreview_nodes = 1\n", "render.preview_nodes = 1 is out of range: 2 ..= 256"),
+            ("[render]\npreview_nodes = 257\n", "render.preview_nodes = 257 is out of range: 2 ..= 256"),
         ];
         for (extra, msg) in cases {
             let s = SceneFile::from_toml_str(&format!("{MINIMAL}{extra}"), "t");
             let e = s.and_then(|s| s.validate()).unwrap_err();
             assert_eq!(e.to_string(), msg);
         }
+        // The preview's lattice: unset (the default lattice) unless a count is given,
+        // and written back only when given.
+        let unset = SceneFile::from_toml_str(MINIMAL, "t").unwrap();
+        assert_eq!(unset.render.preview_nodes, None);
+        assert!(!unset.to_toml().contains("preview_nodes"));
+        let set = SceneFile::from_toml_str(&format!("{MINIMAL}[render]\npreview_nodes = 200\n"), "t").unwrap();
+        set.validate().unwrap();
+        assert_eq!(set.render.preview_nodes, Some(200));
+        assert!(set.to_toml().contains("preview_nodes = 200"));
         let s = SceneFile::from_toml_str("k = 0\n[grid]\nbuiltin = \"cumulus\"\n", "t").unwrap();
         assert_eq!(s.validate().unwrap_err().to_string(), "k = 0 is out of range: 1 ..= 64");
         let s = SceneFile::from_toml_str("[grid]\nbuiltin = \"cirrus\"\n", "t").unwrap();

@@ -27,14 +27,19 @@ use crate::light::Sun;
 use crate::medium::Medium;
 use glam::{UVec3, Vec3};
 use rayon::prelude::*;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::{Arc, OnceLock};
 
 /// The nodes of a lattice over a medium's support: at most `max_nodes` per axis and
 /// at most one per grid voxel plus one; returns (nodes per axis, spacing).
 pub fn lattice_over(medium: &Medium, max_nodes: u32) -> (UVec3, Vec3) {
+    lattice_over_per_voxel(medium, max_nodes, 1)
+}
+
+/// [`lattice_over`] with at most `per_voxel` (>= 1) node spacings per grid voxel.
+pub fn lattice_over_per_voxel(medium: &Medium, max_nodes: u32, per_voxel: u32) -> (UVec3, Vec3) {
     let grid = medium.grid();
-    let n = (grid.dims() + UVec3::ONE).min(UVec3::splat(max_nodes.max(2)));
+    let n = (grid.dims() * per_voxel.max(1) + UVec3::ONE).min(UVec3::splat(max_nodes.max(2)));
     let spacing = grid.support_bounds().extent() / (n - UVec3::ONE).as_vec3();
     (n, spacing)
 }
@@ -133,40 +138,66 @@ pub type NodeSource = Arc<dyn Fn(Vec3) -> f32 + Send + Sync>;
 /// stored as they come, and a NaN from one is stored as 0).
 const UNSET: u32 = u32::MAX;
 
+/// Edge of a lattice brick, in nodes (4^3 nodes, 256 bytes, to a brick).
+const LATTICE_BRICK_LOG2: u32 = 2;
+const LATTICE_BRICK_NODES: usize = 1 << (3 * LATTICE_BRICK_LOG2);
+
+/// A brick of nodes: f32 bits each, UNSET until evaluated.
+type LatticeBrick = Box<[AtomicU32; LATTICE_BRICK_NODES]>;
+
 /// One value per node of a lattice over a box, read by trilinear interpolation.
 ///
 /// A lattice is either filled up front ([`ScalarLattice::new`]) or lazily
 /// ([`ScalarLattice::lazy`]): a node is evaluated by the source the first time a
 /// lookup reads it and kept. Where the lookups concentrate (the camera-facing shell of
 /// a dense cloud, for the preview) a fine lattice then costs the nodes that are read,
-/// not all of them. Two threads reading a new node at once may both evaluate it; the
-/// source is a function of the position, so they store the same bits, and the values
-/// read do not depend on the thread count or the order of the lookups.
+/// not all of them, in time and in memory: the nodes are stored in bricks of 4^3,
+/// each allocated when a lookup first reads one of its nodes. Two threads reading a
+/// new node at once may both evaluate it; the source is a function of the position,
+/// so they store the same bits, and the values read do not depend on the thread count
+/// or the order of the lookups.
 pub struct ScalarLattice {
     n: UVec3,
     origin: Vec3,
     spacing: Vec3,
     inv_spacing: Vec3,
-    /// f32 bits per node (UNSET until evaluated), index x + n.x (y + n.y z).
-    data: Vec<AtomicU32>,
+    /// Bricks per axis.
+    bricks_n: UVec3,
+    /// The bricks, x fastest; within one, node x + 4 (y + 4 z).
+    bricks: Vec<OnceLock<LatticeBrick>>,
     source: Option<NodeSource>,
 }
 
 impl ScalarLattice {
     /// `n` nodes per axis (each >= 2) from `origin`, `spacing` apart, with `data` in
-    /// node order.
+    /// node order (x fastest).
     pub fn new(n: UVec3, origin: Vec3, spacing: Vec3, data: Vec<f32>) -> Self {
         assert!(n.min_element() >= 2 && data.len() == (n.x * n.y * n.z) as usize, "a lattice of {n} nodes");
-        let data = data.into_iter().map(|v| AtomicU32::new(v.to_bits())).collect();
-        ScalarLattice { n, origin, spacing, inv_spacing: spacing.recip(), data, source: None }
+        let l = Self::empty(n, origin, spacing, None);
+        for z in 0..n.z {
+            for y in 0..n.y {
+                for x in 0..n.x {
+                    let (brick, i) = l.brick_of(x, y, z);
+                    l.bricks[brick].get_or_init(new_brick)[i]
+                        .store(data[(x + n.x * (y + n.y * z)) as usize].to_bits(), Ordering::Relaxed);
+                }
+            }
+        }
+        l
     }
 
     /// `n` nodes per axis (each >= 2) from `origin`, `spacing` apart, each evaluated by
     /// `source` at its position when a lookup first reads it.
     pub fn lazy(n: UVec3, origin: Vec3, spacing: Vec3, source: NodeSource) -> Self {
         assert!(n.min_element() >= 2, "a lattice of {n} nodes");
-        let data = (0..n.x * n.y * n.z).map(|_| AtomicU32::new(UNSET)).collect();
-        ScalarLattice { n, origin, spacing, inv_spacing: spacing.recip(), data, source: Some(source) }
+        Self::empty(n, origin, spacing, Some(source))
+    }
+
+    fn empty(n: UVec3, origin: Vec3, spacing: Vec3, source: Option<NodeSource>) -> Self {
+        let bricks_n = (n + (1 << LATTICE_BRICK_LOG2) - 1) >> LATTICE_BRICK_LOG2;
+        let bricks =
+            (0..bricks_n.x as usize * bricks_n.y as usize * bricks_n.z as usize).map(|_| OnceLock::new()).collect();
+        ScalarLattice { n, origin, spacing, inv_spacing: spacing.recip(), bricks_n, bricks, source }
     }
 
     /// Nodes per axis.
@@ -176,11 +207,19 @@ impl ScalarLattice {
 
     /// Nodes evaluated so far (all of them for a lattice filled up front).
     pub fn evaluated(&self) -> usize {
-        self.data.iter().filter(|v| v.load(Ordering::Relaxed) != UNSET).count()
+        self.bricks
+            .iter()
+            .filter_map(|b| b.get())
+            .map(|b| b.iter().filter(|v| v.load(Ordering::Relaxed) != UNSET).count())
+            .sum()
     }
 
+    /// Bytes held: the brick index and the bricks allocated so far (all of them for a
+    /// lattice filled up front, those its lookups have read for a lazy one).
     pub fn memory_bytes(&self) -> usize {
-        self.data.len() * 4
+        let allocated = self.bricks.iter().filter(|b| b.get().is_some()).count();
+        self.bricks.len() * std::mem::size_of::<OnceLock<LatticeBrick>>()
+            + allocated * std::mem::size_of::<[AtomicU32; LATTICE_BRICK_NODES]>()
     }
 
     /// `n` nodes per axis (each >= 2) from `origin`, `spacing` apart, every node
@@ -188,39 +227,84 @@ impl ScalarLattice {
     /// thread count).
     pub fn filled(n: UVec3, origin: Vec3, spacing: Vec3, source: NodeSource) -> Self {
         let l = Self::lazy(n, origin, spacing, source);
-        (0..l.data.len()).into_par_iter().for_each(|i| {
-            l.node(i);
+        (0..n.x * n.y * n.z).into_par_iter().for_each(|i| {
+            l.node(i % n.x, (i / n.x) % n.y, i / (n.x * n.y));
         });
         ScalarLattice { source: None, ..l }
     }
 
-    /// The position of node `i`.
-    #[inline]
-    fn position(&self, i: usize) -> Vec3 {
-        let n = self.n;
-        let i = i as u32;
-        self.origin + UVec3::new(i % n.x, (i / n.x) % n.y, i / (n.x * n.y)).as_vec3() * self.spacing
+    /// The brick of node (x, y, z) and the node's index within it.
+    #[inline(always)]
+    fn brick_of(&self, x: u32, y: u32, z: u32) -> (usize, usize) {
+        let m = (1 << LATTICE_BRICK_LOG2) - 1;
+        let (s, b) = (LATTICE_BRICK_LOG2, self.bricks_n);
+        (
+            ((x >> s) + b.x * ((y >> s) + b.y * (z >> s))) as usize,
+            ((x & m) | (y & m) << s | (z & m) << (2 * s)) as usize,
+        )
     }
 
-    /// The value of node `i`, evaluated now if it was not.
+    /// The value of node (x, y, z), evaluated now if it was not.
     #[inline]
-    fn node(&self, i: usize) -> f32 {
-        let bits = self.data[i].load(Ordering::Relaxed);
+    fn node(&self, x: u32, y: u32, z: u32) -> f32 {
+        let (b, i) = self.brick_of(x, y, z);
+        let brick = match self.bricks[b].get() {
+            Some(brick) => brick,
+            // A lattice filled up front has every brick; a lazy one makes it now.
+            None if self.source.is_some() => self.bricks[b].get_or_init(new_brick),
+            None => return 0.0,
+        };
+        let bits = brick[i].load(Ordering::Relaxed);
         if bits != UNSET {
             return f32::from_bits(bits);
         }
         let Some(source) = &self.source else { return 0.0 };
-        let v = source(self.position(i));
+        let v = source(self.origin + UVec3::new(x, y, z).as_vec3() * self.spacing);
         let v = if v.is_nan() { 0.0 } else { v };
-        self.data[i].store(v.to_bits(), Ordering::Relaxed);
+        brick[i].store(v.to_bits(), Ordering::Relaxed);
         v
     }
 
-    /// Trilinear value at `x` (positions outside the lattice are clamped to it).
+    /// Trilinear value at `x` (positions outside the lattice are clamped to it); the
+    /// same arithmetic as [`trilinear`].
     #[inline]
     pub fn lookup(&self, x: Vec3) -> f32 {
-        trilinear_with(self.n, (x - self.origin) * self.inv_spacing, |i| self.node(i))
+        let n = self.n;
+        let q = ((x - self.origin) * self.inv_spacing).clamp(Vec3::ZERO, (n - UVec3::ONE).as_vec3());
+        // q is clamped to >= 0, so truncation is floor.
+        let i0 = q.as_uvec3().min(n - UVec3::splat(2));
+        let f = q - i0.as_vec3();
+        let (x0, y0, z0) = (i0.x, i0.y, i0.z);
+        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+        let m = (1 << LATTICE_BRICK_LOG2) - 1;
+        if (x0 & m) < m && (y0 & m) < m && (z0 & m) < m {
+            // The eight corners in one brick, all evaluated: read them from it.
+            let (b, i) = self.brick_of(x0, y0, z0);
+            if let Some(brick) = self.bricks[b].get() {
+                let (sy, sz) = (1 << LATTICE_BRICK_LOG2, 1 << (2 * LATTICE_BRICK_LOG2));
+                let c = [i, i + 1, i + sy, i + sy + 1, i + sz, i + sz + 1, i + sz + sy, i + sz + sy + 1]
+                    .map(|j| brick[j].load(Ordering::Relaxed));
+                if c.iter().all(|&bits| bits != UNSET) {
+                    let c = c.map(f32::from_bits);
+                    let c00 = lerp(c[0], c[1], f.x);
+                    let c10 = lerp(c[2], c[3], f.x);
+                    let c01 = lerp(c[4], c[5], f.x);
+                    let c11 = lerp(c[6], c[7], f.x);
+                    return lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z);
+                }
+            }
+        }
+        let c00 = lerp(self.node(x0, y0, z0), self.node(x0 + 1, y0, z0), f.x);
+        let c10 = lerp(self.node(x0, y0 + 1, z0), self.node(x0 + 1, y0 + 1, z0), f.x);
+        let c01 = lerp(self.node(x0, y0, z0 + 1), self.node(x0 + 1, y0, z0 + 1), f.x);
+        let c11 = lerp(self.node(x0, y0 + 1, z0 + 1), self.node(x0 + 1, y0 + 1, z0 + 1), f.x);
+        lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z)
     }
+}
+
+/// A brick of nodes not evaluated yet.
+fn new_brick() -> LatticeBrick {
+    Box::new(std::array::from_fn(|_| AtomicU32::new(UNSET)))
 }
 
 /// The sun's transmittance over the medium, for one cloud, density scale and sun
@@ -640,6 +724,10 @@ mod tests {
         let read = 5 * n.y as usize * n.z as usize;
         assert!(one.evaluated() <= read && one.evaluated() > read / 2, "{} of {read}", one.evaluated());
         assert_eq!(calls.load(Ordering::Relaxed), one.evaluated(), "a node evaluated twice from one thread");
+        // Only the bricks read are held: 2 of the 3 along x.
+        assert!(one.memory_bytes() < filled.memory_bytes(), "{} against {}", one.memory_bytes(), filled.memory_bytes());
+        let unread = ScalarLattice::lazy(n, origin, spacing, Arc::new(|_| 1.0));
+        assert!(unread.memory_bytes() < filled.memory_bytes() / 4, "{}", unread.memory_bytes());
         // From 3 threads, in reverse order: the same values.
         let three = lazy(Arc::new(std::sync::atomic::AtomicUsize::new(0)));
         let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();

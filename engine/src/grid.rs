@@ -1094,7 +1094,7 @@ mod tests {
         let dims = UVec3::new(29, 21, 35);
         let ramp: Vec<f32> = (0..(dims.x * dims.y * dims.z) as usize)
             .map(|i| {
-                let (x, y, z) = unflatten(i, dims);
+                let (x, y, _) = unflatten(i, dims);
                 0.03 * x as f32 + 0.01 * y as f32
             })
             .collect();

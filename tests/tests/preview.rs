@@ -304,8 +304,8 @@ fn learned_preview_matches_path_tracing_on_a_sphere() {
 }
 
 /// A preview states all the memory it keeps: a lazily filled learned lattice keeps
-/// its model, and the model's fields count with the lattices; a lattice filled up
-/// front has let the model go, and counts the lattice alone.
+/// its model, and the model's fields count with the lattices' bricks read so far; a
+/// lattice filled up front has let the model go, and counts the lattice alone.
 #[test]
 fn learned_lattice_counts_the_fields_its_model_keeps() {
     use engine::InScatterPredictor;
@@ -325,17 +325,65 @@ fn learned_lattice_counts_the_fields_its_model_keeps() {
     let scene = sphere_scene(8.0, 0.9, 0.5, Vec3::new(0.3, -1.0, 0.2));
     let field = Arc::new(SunTransmittance::build(&scene.medium, scene.sun.as_ref().unwrap(), 64));
     let eye = scene.camera.position();
-    let lazy = Preview::learned_lattice(&scene, &field, Arc::new(Holding), eye, 48);
-    let eager = Preview::learned_lattice(&scene, &field, Arc::new(Holding), eye, 16);
+    let lazy = Preview::learned_lattice(&scene, &field, Arc::new(Holding), eye, Some(48));
+    let eager = Preview::learned_lattice(&scene, &field, Arc::new(Holding), eye, Some(16));
     assert!(lazy.nodes().element_product() > EAGER_LATTICE_NODES);
     assert!(eager.nodes().element_product() <= EAGER_LATTICE_NODES);
     let nodes = |l: &engine::integrator::preview::LearnedLattice| l.nodes().element_product() as usize;
-    // The lazy pair: 48^3 and the far lattice's nodes, 4 bytes each, and the model's.
-    assert!(lazy.memory_bytes() > 4 * nodes(&lazy) + (3 << 20), "{}", lazy.memory_bytes());
-    assert!(lazy.memory_bytes() < 4 * nodes(&lazy) * 2 + (3 << 20), "{}", lazy.memory_bytes());
-    assert_eq!(eager.memory_bytes(), 4 * nodes(&eager));
+    // The lazy pair before any lookup: the model's bytes and the bricks' index, a
+    // small part of 48^3 nodes at 4 bytes each.
+    let unread = lazy.memory_bytes();
+    assert!(unread > (3 << 20) && unread < (3 << 20) + nodes(&lazy), "{unread}");
+    // Lookups allocate the bricks they read, and those count.
+    for i in 0..200 {
+        let t = i as f32 / 200.0;
+        lazy.lookup(Vec3::new(t - 0.5, 0.1 * t, 0.2 - 0.3 * t), 1.0);
+    }
+    assert!(lazy.memory_bytes() > unread + 4 * 64, "{} after {unread}", lazy.memory_bytes());
+    assert!(lazy.memory_bytes() < (3 << 20) + 4 * nodes(&lazy), "{}", lazy.memory_bytes());
+    // Filled up front: every node (in bricks of 4^3, with their index), no model.
+    assert!(eager.memory_bytes() >= 4 * nodes(&eager) && eager.memory_bytes() < 8 * nodes(&eager));
     let preview = Preview::new(field.clone(), MultipleScattering::Lattice(Arc::new(lazy)), 0.01).unwrap();
     assert!(preview.memory_bytes() > field.memory_bytes() + (3 << 20));
+}
+
+/// The default lattice: the base nodes per axis over an optically thin cloud (one per
+/// voxel on a small grid), and over a thick one spacings of at most
+/// NODE_SPACING_TAU optical depths at the largest extinction, up to
+/// THICK_LATTICE_NODES per axis and two nodes per voxel; never coarser than the base.
+#[test]
+fn default_lattice_follows_the_mean_free_path() {
+    use engine::field::lattice_over;
+    use engine::integrator::preview::{BASE_LATTICE_NODES, NODE_SPACING_TAU, THICK_LATTICE_NODES};
+    let medium = |n: u32, rho: f32| {
+        Medium::new(Arc::new(sphere_grid(n)), rho, 1.0, PhaseFunction::HenyeyGreenstein { g: 0.85 }).unwrap()
+    };
+    for (n, rho) in [(128, 4.0), (128, 40.0), (128, 80.0), (128, 160.0), (128, 320.0), (48, 40.0), (48, 160.0)] {
+        let m = medium(n, rho);
+        let (nodes, spacing) = Preview::default_lattice(&m);
+        let extent = m.grid().support_bounds().extent();
+        assert!((spacing * (nodes - 1).as_vec3() - extent).abs().max_element() < 1e-4 * extent.max_element());
+        let base = lattice_over(&m, BASE_LATTICE_NODES).0;
+        assert!(nodes.cmpge(base).all(), "n {n}, rho {rho}: {nodes} against the base {base}");
+        assert!(nodes.max_element() <= THICK_LATTICE_NODES.max(base.max_element()), "n {n}, rho {rho}: {nodes}");
+        assert!(nodes.cmple(m.grid().dims() * 2 + 1).all(), "n {n}, rho {rho}: {nodes}");
+        let tau = spacing.max_element() * rho * m.grid().max_value();
+        let capped = nodes.max_element() == THICK_LATTICE_NODES || nodes == m.grid().dims() * 2 + 1;
+        assert!(
+            tau <= NODE_SPACING_TAU * 1.0001 || capped,
+            "n {n}, rho {rho}: {tau} optical depths a spacing at {nodes}"
+        );
+        if nodes != base {
+            // Refined: no coarser than the bound asks (one node fewer would exceed it).
+            let coarser = extent.max_element() / (nodes.max_element() - 2) as f32 * rho * m.grid().max_value();
+            assert!(coarser > NODE_SPACING_TAU || capped, "n {n}, rho {rho}: {nodes} finer than needed");
+        }
+    }
+    // The evaluation's clouds: rho 40 keeps the base, rho 160 refines to the cap.
+    assert_eq!(Preview::default_lattice(&medium(128, 40.0)).0, glam::UVec3::splat(BASE_LATTICE_NODES));
+    assert!(Preview::default_lattice(&medium(128, 160.0)).0.min_element() > 160);
+    // A thin cloud on a small grid: one node per voxel, as before.
+    assert_eq!(Preview::default_lattice(&medium(48, 4.0)).0, glam::UVec3::splat(49));
 }
 
 /// The learned preview's cloud-aware model reads the preview's own sun field rather

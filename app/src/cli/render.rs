@@ -237,8 +237,10 @@ pub fn render(args: RenderArgs) -> Result<()> {
             c.request_stop();
         })?;
     }
-    let preview_mib = integrator.preview_state().map(|p| p.memory_bytes() as f64 / 1048576.0);
+    // (Kept to state its memory after the render: a lazy lattice grows as it is read.)
+    let preview = integrator.preview_state().cloned();
     let outcome = render_spp(scene.clone(), integrator, spp, &control, |done| bar.set_position(done as u64))?;
+    let preview_mib = preview.map(|p| p.memory_bytes() as f64 / 1048576.0);
     bar.finish_and_clear();
     let film = &outcome.film;
     if film.spp() == 0 {
@@ -265,8 +267,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
         // between integrators on the same scene and machine.
         "efficiency": noise.map(|n| 1.0 / (n * n * outcome.render_secs).max(1e-300)),
         "mode": mode,
-        // What the preview keeps (the sun's transmittance, the learned lattice and the
-        // model's fields it holds), in MiB.
+        // What the preview keeps after the render (the sun's transmittance, the learned
+        // lattice's bricks read so far and the model's fields it holds), in MiB.
         "preview_fields_mib": preview_mib,
         "out": args.out,
     });

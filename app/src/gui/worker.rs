@@ -363,7 +363,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                     // frame, where the octaves at their default constants are several
                     // times too dark (docs/evaluation.md).
                     let mut first = (*scene).clone();
-                    first.render.preview_nodes = FIRST_LOOK_LATTICE;
+                    first.render.preview_nodes = Some(FIRST_LOOK_LATTICE);
                     let quick = preview_renderer(
                         &first,
                         built.clone(),
@@ -435,7 +435,8 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                 // The full learned preview replaces the first look after its first pass
                 // (its lattice is built once for this cloud, sun and camera).
                 let mut file = st.learned.take().expect("checked");
-                file.render.preview_nodes = file.render.preview_nodes.min(STAND_IN_LATTICE);
+                file.render.preview_nodes =
+                    Some(file.render.preview_nodes.map_or(STAND_IN_LATTICE, |n| n.min(STAND_IN_LATTICE)));
                 let full = models::global::depth_field::DEFAULT_MAX_NODES;
                 let cancel = Cancel::on(&control, j.generation);
                 if let Ok(r) = preview_renderer(&file, j.main.scene().clone(), "learned", full, &mut predictors, cancel)

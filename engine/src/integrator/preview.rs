@@ -42,7 +42,7 @@
 //! the smallest voxel edge, [`Preview::default_step`]).
 
 use super::base::PathSample;
-use crate::field::{NodeSource, ScalarLattice, SunTransmittance, lattice_over};
+use crate::field::{NodeSource, ScalarLattice, SunTransmittance, lattice_over, lattice_over_per_voxel};
 use crate::grid::Bounds3;
 use crate::medium::Medium;
 use crate::phase::PhaseFunction;
@@ -51,6 +51,30 @@ use crate::rng::Rng;
 use crate::scene::Scene;
 use glam::Vec3;
 use std::sync::Arc;
+
+/// Nodes per axis of the learned preview's default lattice
+/// ([`Preview::default_lattice`]) over an optically thin cloud. The lattice is lazy,
+/// so the nodes cost what the preview's marches read, and they are most of the first
+/// pass (the model at each node). On the nine cells of docs/evaluation.md (256x256,
+/// 128^3 clouds at rho 40 and 160) 96 nodes reach the floors of 128 within 0.2
+/// points in eight cells and 5 % in about 0.6 of the time (scene A frontlit 0.55 s
+/// against 1.06 s); 64 nodes lose 1 - 6 points backlit, where the image is the bright
+/// fringe, and 48 lost 2 - 13.
+pub const BASE_LATTICE_NODES: u32 = 96;
+
+/// Nodes per axis, at most, of the default lattice over an optically thick cloud.
+pub const THICK_LATTICE_NODES: u32 = 192;
+
+/// The most optical depth, at the medium's largest extinction, that one spacing of the
+/// default lattice spans. Seen against the sun, a dense cloud's image is its lit rim,
+/// about a mean free path deep, across which the model's answer changes as fast as
+/// the density does: a lattice that spans it in one spacing averages the rim's bright
+/// answers with the darker ones behind and outside it. Scene C at rho 160 backlit
+/// (1.7 optical depths per spacing at 96 nodes) reads a floor of 9.3 % at 96 nodes,
+/// 6.1 % at 160, 5.7 % at 192 and 5.5 % at 256, where the model evaluated at every
+/// march step reads 5.1 % (docs/evaluation.md); toplit and frontlit the floors do not
+/// move. At 0.85 the clouds at rho 40 (0.42 per spacing) and rho 80 keep 96 nodes.
+pub const NODE_SPACING_TAU: f32 = 0.85;
 
 /// Learned lattices of at most this many nodes are filled up front (the window's
 /// first look: a few milliseconds, and its passes then only read); larger ones are
@@ -203,7 +227,8 @@ impl CameraLatticePredictor {
             return None;
         }
         // Only the fine lattice is read (at the camera's first vertices): no far one.
-        let lattice = Preview::lattice_of(scene, None, inner.clone(), camera, max_nodes, false);
+        let nodes = lattice_over(&scene.medium, max_nodes);
+        let lattice = Preview::lattice_of(scene, None, inner.clone(), camera, nodes, false);
         let name = format!("{} (camera lattice)", inner.name());
         Some(CameraLatticePredictor { lattice, inner, camera, name })
     }
@@ -291,7 +316,8 @@ impl Preview {
     }
 
     /// L_ms for a unit sun from `predictor` at the nodes of a lattice over the
-    /// medium (at most `max_nodes` per axis), with omega the direction from each node
+    /// medium (at most `max_nodes` per axis and one per voxel; None: the default
+    /// lattice, [`Preview::default_lattice`]), with omega the direction from each node
     /// toward `camera`. Above [`EAGER_LATTICE_NODES`] each node is evaluated when a
     /// lookup first reads it (a lazy [`ScalarLattice`]: a march reads the nodes around
     /// the camera-facing part of the cloud it reaches, so a lattice as fine as the grid
@@ -306,9 +332,31 @@ impl Preview {
         sun: &Arc<SunTransmittance>,
         predictor: Arc<dyn InScatterPredictor>,
         camera: Vec3,
-        max_nodes: u32,
+        max_nodes: Option<u32>,
     ) -> LearnedLattice {
-        Self::lattice_of(scene, Some(sun), predictor, camera, max_nodes, true)
+        let nodes = match max_nodes {
+            Some(m) => lattice_over(&scene.medium, m),
+            None => Self::default_lattice(&scene.medium),
+        };
+        Self::lattice_of(scene, Some(sun), predictor, camera, nodes, true)
+    }
+
+    /// The learned preview's lattice when none is asked for, as (nodes per axis,
+    /// spacing): [`BASE_LATTICE_NODES`] per axis (at most one per voxel), finer where
+    /// one spacing would span more than [`NODE_SPACING_TAU`] optical depths at the
+    /// medium's largest extinction, up to [`THICK_LATTICE_NODES`] per axis and two
+    /// nodes per voxel.
+    pub fn default_lattice(medium: &Medium) -> (glam::UVec3, Vec3) {
+        let base = lattice_over(medium, BASE_LATTICE_NODES);
+        let sigma_max = (medium.rho() * medium.grid().max_value()).min(medium.sigma_cap());
+        if !(base.1.max_element() * sigma_max > NODE_SPACING_TAU) {
+            return base;
+        }
+        // The nodes per axis whose spacing spans NODE_SPACING_TAU (compared as f32: a
+        // huge rho must not overflow the cast).
+        let extent = medium.grid().support_bounds().extent().max_element();
+        let nodes = (extent * sigma_max / NODE_SPACING_TAU).ceil() + 1.0;
+        lattice_over_per_voxel(medium, nodes.min(THICK_LATTICE_NODES as f32) as u32, 2)
     }
 
     /// [`Preview::learned_lattice`] of a predictor's own quantity: `single` the sun
@@ -320,11 +368,10 @@ impl Preview {
         single: Option<&Arc<SunTransmittance>>,
         predictor: Arc<dyn InScatterPredictor>,
         camera: Vec3,
-        max_nodes: u32,
+        (n, spacing): (glam::UVec3, Vec3),
         far: bool,
     ) -> LearnedLattice {
         let medium = scene.medium.clone();
-        let (n, spacing) = lattice_over(&medium, max_nodes);
         let origin = medium.grid().support_bounds().min;
         let Some(light) = scene.sun else {
             return LearnedLattice::single(ScalarLattice::new(

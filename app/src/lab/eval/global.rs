@@ -305,7 +305,7 @@ pub fn eval(args: &EvalArgs) -> Result<Vec<CellResult>> {
         bar.set_message(format!("scene {label} {config} rho {rho}"));
         let mut file = eval_scene(preset, config, *rho, args.size, args.res, args.sky)?;
         if let Some(n) = args.preview_nodes {
-            file.render.preview_nodes = n;
+            file.render.preview_nodes = Some(n);
         }
         if let Some(n) = args.prediction_lattice {
             file.render.prediction_lattice = n;

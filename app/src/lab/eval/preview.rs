@@ -148,7 +148,13 @@ impl PreviewJob<'_> {
     /// set-up builds the density pyramid as for a new cloud.
     fn cache_paths(&self, technique: &str) -> (std::path::PathBuf, std::path::PathBuf) {
         let lattice = if technique == TECHNIQUES[0] {
-            format!("_nodes{}_fields{}_newcloud", self.file.render.preview_nodes, self.field_nodes)
+            // The default lattice by the nodes it takes for this cloud.
+            let nodes = self
+                .file
+                .render
+                .preview_nodes
+                .unwrap_or_else(|| Preview::default_lattice(&self.scene.medium).0.max_element());
+            format!("_nodes{nodes}_fields{}_newcloud", self.field_nodes)
         } else {
             String::new()
         };
