@@ -286,7 +286,7 @@ pub struct RenderDesc {
     #[serde(skip_serializing_if = "is_learned")]
     pub preview: String,
     /// Nodes per axis, at most, of the learned preview's multiple-scattering lattice,
-    /// 2 ..= 256 (at most one per voxel; each node evaluated when the preview first
+    /// 2 ..= 256 (at most two per voxel; each node evaluated when the preview first
     /// reads it). Default (unset): 96, finer over optically thick clouds, up to 192
     /// and two per voxel (engine::integrator::preview::Preview::default_lattice).
     #[serde(skip_serializing_if = "Option::is_none")]

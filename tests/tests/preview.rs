@@ -379,6 +379,25 @@ fn default_lattice_follows_the_mean_free_path() {
             assert!(coarser > NODE_SPACING_TAU || capped, "n {n}, rho {rho}: {nodes} finer than needed");
         }
     }
+    // Flat voxels (a 64 x 64 x 8 grid over a cube): each axis follows its own
+    // spacing, none coarser than the base.
+    let flat = engine::DensityGrid::from_fn(
+        glam::UVec3::new(64, 64, 8),
+        engine::Bounds3::new(Vec3::splat(-0.5), Vec3::splat(0.5)),
+        |p| if p.length() < 0.4 { 1.0 } else { 0.0 },
+    )
+    .unwrap();
+    for rho in [4.0, 20.0, 160.0] {
+        let m = Medium::new(Arc::new(flat.clone()), rho, 1.0, PhaseFunction::Isotropic).unwrap();
+        let (nodes, spacing) = Preview::default_lattice(&m);
+        let base = lattice_over(&m, BASE_LATTICE_NODES).0;
+        assert!(nodes.cmpge(base).all(), "rho {rho}: {nodes} against the base {base}");
+        for a in 0..3 {
+            let cap = THICK_LATTICE_NODES.min(2 * m.grid().dims()[a] + 1);
+            let tau = spacing[a] * rho * m.grid().max_value();
+            assert!(tau <= NODE_SPACING_TAU * 1.0001 || nodes[a] == cap, "rho {rho}, axis {a}: {tau} at {nodes}");
+        }
+    }
     // The evaluation's clouds: rho 40 keeps the base, rho 160 refines to the cap.
     assert_eq!(Preview::default_lattice(&medium(128, 40.0)).0, glam::UVec3::splat(BASE_LATTICE_NODES));
     assert!(Preview::default_lattice(&medium(128, 160.0)).0.min_element() > 160);

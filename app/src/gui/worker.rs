@@ -154,8 +154,8 @@ fn preview_renderer(
 pub const FIRST_LOOK_LATTICE: u32 = 12;
 
 /// At most this many lattice nodes per axis for the learned preview that stands in
-/// while the scene's own render converges. The preview's own default (one node per
-/// voxel, filled as the marches read it) makes its first passes' tiles heavy enough
+/// while the scene's own render converges. A finer lattice (filled as the marches
+/// read it; at the time measured, one node per voxel) makes its first passes' tiles heavy enough
 /// that a change waits for them: `nimbus bench latency` read 20 - 60 ms more for every
 /// kind of change at 128 than at 48. The stand-in is replaced by the render anyway;
 /// a scene whose own render is the preview keeps its lattice.

@@ -316,7 +316,7 @@ impl Preview {
     }
 
     /// L_ms for a unit sun from `predictor` at the nodes of a lattice over the
-    /// medium (at most `max_nodes` per axis and one per voxel; None: the default
+    /// medium (at most `max_nodes` per axis and two per voxel; None: the default
     /// lattice, [`Preview::default_lattice`]), with omega the direction from each node
     /// toward `camera`. Above [`EAGER_LATTICE_NODES`] each node is evaluated when a
     /// lookup first reads it (a lazy [`ScalarLattice`]: a march reads the nodes around
@@ -335,28 +335,34 @@ impl Preview {
         max_nodes: Option<u32>,
     ) -> LearnedLattice {
         let nodes = match max_nodes {
-            Some(m) => lattice_over(&scene.medium, m),
+            Some(m) => lattice_over_per_voxel(&scene.medium, m, 2),
             None => Self::default_lattice(&scene.medium),
         };
         Self::lattice_of(scene, Some(sun), predictor, camera, nodes, true)
     }
 
     /// The learned preview's lattice when none is asked for, as (nodes per axis,
-    /// spacing): [`BASE_LATTICE_NODES`] per axis (at most one per voxel), finer where
-    /// one spacing would span more than [`NODE_SPACING_TAU`] optical depths at the
-    /// medium's largest extinction, up to [`THICK_LATTICE_NODES`] per axis and two
-    /// nodes per voxel.
+    /// spacing): [`BASE_LATTICE_NODES`] per axis (at most one per voxel), finer along
+    /// an axis where one spacing would span more than [`NODE_SPACING_TAU`] optical
+    /// depths at the medium's largest extinction, to that bound, up to
+    /// [`THICK_LATTICE_NODES`] per axis and two nodes per voxel; never coarser than
+    /// the base lattice along any axis.
     pub fn default_lattice(medium: &Medium) -> (glam::UVec3, Vec3) {
-        let base = lattice_over(medium, BASE_LATTICE_NODES);
-        let sigma_max = (medium.rho() * medium.grid().max_value()).min(medium.sigma_cap());
-        if !(base.1.max_element() * sigma_max > NODE_SPACING_TAU) {
-            return base;
+        let grid = medium.grid();
+        let (base, _) = lattice_over(medium, BASE_LATTICE_NODES);
+        let sigma_max = (medium.rho() * grid.max_value()).min(medium.sigma_cap());
+        let extent = grid.support_bounds().extent();
+        let mut n = base;
+        for a in 0..3 {
+            // The nodes along axis a whose spacing spans NODE_SPACING_TAU (as f32: a
+            // huge rho must not overflow the cast; NaN keeps the base).
+            let needed = (extent[a] * sigma_max / NODE_SPACING_TAU).ceil() + 1.0;
+            let cap = THICK_LATTICE_NODES.min(2 * grid.dims()[a] + 1);
+            if needed > base[a] as f32 {
+                n[a] = needed.min(cap as f32) as u32;
+            }
         }
-        // The nodes per axis whose spacing spans NODE_SPACING_TAU (compared as f32: a
-        // huge rho must not overflow the cast).
-        let extent = medium.grid().support_bounds().extent().max_element();
-        let nodes = (extent * sigma_max / NODE_SPACING_TAU).ceil() + 1.0;
-        lattice_over_per_voxel(medium, nodes.min(THICK_LATTICE_NODES as f32) as u32, 2)
+        (n, extent / (n - glam::UVec3::ONE).as_vec3())
     }
 
     /// [`Preview::learned_lattice`] of a predictor's own quantity: `single` the sun
@@ -374,12 +380,9 @@ impl Preview {
         let medium = scene.medium.clone();
         let origin = medium.grid().support_bounds().min;
         let Some(light) = scene.sun else {
-            return LearnedLattice::single(ScalarLattice::new(
-                n,
-                origin,
-                spacing,
-                vec![0.0; (n.x * n.y * n.z) as usize],
-            ));
+            // No sun, no multiple scattering: a lattice of zeros, two nodes per axis.
+            let extent = medium.grid().support_bounds().extent();
+            return LearnedLattice::single(ScalarLattice::new(glam::UVec3::splat(2), origin, extent, vec![0.0; 8]));
         };
         let single = single.filter(|_| predictor.predicts_single_scattering()).cloned();
         let model_bytes = predictor.memory_bytes();

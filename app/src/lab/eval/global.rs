@@ -105,8 +105,9 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
     pub preview_repeats: u32,
     /// Nodes per axis, at most, of the learned preview's lattice of multiple
-    /// scattering (default: the scene files', one node per voxel up to 128).
-    #[arg(long, value_parser = clap::value_parser!(u32).range(2..=1024))]
+    /// scattering, and at most two per voxel (default: the scene files', or the
+    /// default lattice: 96 per axis, finer over optically thick clouds).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(2..=256))]
     pub preview_nodes: Option<u32>,
     /// Nodes per axis, at most, of the lattice of the model's answers toward the
     /// camera that prediction at k = 1 reads; 0 evaluates the model at every

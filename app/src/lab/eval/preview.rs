@@ -148,12 +148,12 @@ impl PreviewJob<'_> {
     /// set-up builds the density pyramid as for a new cloud.
     fn cache_paths(&self, technique: &str) -> (std::path::PathBuf, std::path::PathBuf) {
         let lattice = if technique == TECHNIQUES[0] {
-            // The default lattice by the nodes it takes for this cloud.
-            let nodes = self
-                .file
-                .render
-                .preview_nodes
-                .unwrap_or_else(|| Preview::default_lattice(&self.scene.medium).0.max_element());
+            // The nodes the lattice takes for this cloud, asked for or by default.
+            let n = match self.file.render.preview_nodes {
+                Some(m) => engine::field::lattice_over_per_voxel(&self.scene.medium, m, 2).0,
+                None => Preview::default_lattice(&self.scene.medium).0,
+            };
+            let nodes = if n.x == n.y && n.y == n.z { n.x.to_string() } else { format!("{}x{}x{}", n.x, n.y, n.z) };
             format!("_nodes{nodes}_fields{}_newcloud", self.field_nodes)
         } else {
             String::new()
