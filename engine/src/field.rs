@@ -275,7 +275,6 @@ impl ScalarLattice {
         let i0 = q.as_uvec3().min(n - UVec3::splat(2));
         let f = q - i0.as_vec3();
         let (x0, y0, z0) = (i0.x, i0.y, i0.z);
-        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
         let m = (1 << LATTICE_BRICK_LOG2) - 1;
         if (x0 & m) < m && (y0 & m) < m && (z0 & m) < m {
             // The eight corners in one brick, all evaluated: read them from it.
@@ -285,20 +284,22 @@ impl ScalarLattice {
                 let c = [i, i + 1, i + sy, i + sy + 1, i + sz, i + sz + 1, i + sz + sy, i + sz + sy + 1]
                     .map(|j| brick[j].load(Ordering::Relaxed));
                 if c.iter().all(|&bits| bits != UNSET) {
-                    let c = c.map(f32::from_bits);
-                    let c00 = lerp(c[0], c[1], f.x);
-                    let c10 = lerp(c[2], c[3], f.x);
-                    let c01 = lerp(c[4], c[5], f.x);
-                    let c11 = lerp(c[6], c[7], f.x);
-                    return lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z);
+                    return lerp_corners(c.map(f32::from_bits), f);
                 }
             }
         }
-        let c00 = lerp(self.node(x0, y0, z0), self.node(x0 + 1, y0, z0), f.x);
-        let c10 = lerp(self.node(x0, y0 + 1, z0), self.node(x0 + 1, y0 + 1, z0), f.x);
-        let c01 = lerp(self.node(x0, y0, z0 + 1), self.node(x0 + 1, y0, z0 + 1), f.x);
-        let c11 = lerp(self.node(x0, y0 + 1, z0 + 1), self.node(x0 + 1, y0 + 1, z0 + 1), f.x);
-        lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z)
+        let (x1, y1, z1) = (x0 + 1, y0 + 1, z0 + 1);
+        let c = [
+            self.node(x0, y0, z0),
+            self.node(x1, y0, z0),
+            self.node(x0, y1, z0),
+            self.node(x1, y1, z0),
+            self.node(x0, y0, z1),
+            self.node(x1, y0, z1),
+            self.node(x0, y1, z1),
+            self.node(x1, y1, z1),
+        ];
+        lerp_corners(c, f)
     }
 }
 
@@ -535,11 +536,29 @@ fn trilinear_with(n: UVec3, q: Vec3, d: impl Fn(usize) -> f32) -> f32 {
     let (sx, sy) = (1usize, n.x as usize);
     let sz = sy * n.y as usize;
     let base = i0.x as usize + sy * i0.y as usize + sz * i0.z as usize;
+    let c = [
+        d(base),
+        d(base + sx),
+        d(base + sy),
+        d(base + sy + sx),
+        d(base + sz),
+        d(base + sz + sx),
+        d(base + sz + sy),
+        d(base + sz + sy + sx),
+    ];
+    lerp_corners(c, f)
+}
+
+/// Trilinear interpolation of a cell's corners (x fastest: c[x + 2 y + 4 z]) at the
+/// fractional offsets `f`: along x, then y, then z. The one definition every lattice's
+/// lookup uses, so their results agree bit for bit.
+#[inline(always)]
+fn lerp_corners(c: [f32; 8], f: Vec3) -> f32 {
     let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
-    let c00 = lerp(d(base), d(base + sx), f.x);
-    let c10 = lerp(d(base + sy), d(base + sy + sx), f.x);
-    let c01 = lerp(d(base + sz), d(base + sz + sx), f.x);
-    let c11 = lerp(d(base + sz + sy), d(base + sz + sy + sx), f.x);
+    let c00 = lerp(c[0], c[1], f.x);
+    let c10 = lerp(c[2], c[3], f.x);
+    let c01 = lerp(c[4], c[5], f.x);
+    let c11 = lerp(c[6], c[7], f.x);
     lerp(lerp(c00, c10, f.y), lerp(c01, c11, f.y), f.z)
 }
 

@@ -436,7 +436,7 @@ fn run(rx: Receiver<Command>, control: Arc<RenderControl>, mailbox: Arc<Mutex<Ma
                 // (its lattice is built once for this cloud, sun and camera).
                 let mut file = st.learned.take().expect("checked");
                 file.render.preview_nodes =
-                    Some(file.render.preview_nodes.map_or(STAND_IN_LATTICE, |n| n.min(STAND_IN_LATTICE)));
+                    Some(file.render.preview_nodes.unwrap_or(STAND_IN_LATTICE).min(STAND_IN_LATTICE));
                 let full = models::global::depth_field::DEFAULT_MAX_NODES;
                 let cancel = Cancel::on(&control, j.generation);
                 if let Ok(r) = preview_renderer(&file, j.main.scene().clone(), "learned", full, &mut predictors, cancel)

@@ -334,11 +334,17 @@ impl Preview {
         camera: Vec3,
         max_nodes: Option<u32>,
     ) -> LearnedLattice {
-        let nodes = match max_nodes {
-            Some(m) => lattice_over_per_voxel(&scene.medium, m, 2),
-            None => Self::default_lattice(&scene.medium),
-        };
-        Self::lattice_of(scene, Some(sun), predictor, camera, nodes, true)
+        Self::lattice_of(scene, Some(sun), predictor, camera, Self::lattice_nodes(&scene.medium, max_nodes), true)
+    }
+
+    /// The learned preview's lattice over `medium` as (nodes per axis, spacing): at
+    /// most `max_nodes` per axis and two per voxel, or the default lattice for None
+    /// ([`Preview::default_lattice`]).
+    pub fn lattice_nodes(medium: &Medium, max_nodes: Option<u32>) -> (glam::UVec3, Vec3) {
+        match max_nodes {
+            Some(m) => lattice_over_per_voxel(medium, m, 2),
+            None => Self::default_lattice(medium),
+        }
     }
 
     /// The learned preview's lattice when none is asked for, as (nodes per axis,

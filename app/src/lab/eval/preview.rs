@@ -149,10 +149,7 @@ impl PreviewJob<'_> {
     fn cache_paths(&self, technique: &str) -> (std::path::PathBuf, std::path::PathBuf) {
         let lattice = if technique == TECHNIQUES[0] {
             // The nodes the lattice takes for this cloud, asked for or by default.
-            let n = match self.file.render.preview_nodes {
-                Some(m) => engine::field::lattice_over_per_voxel(&self.scene.medium, m, 2).0,
-                None => Preview::default_lattice(&self.scene.medium).0,
-            };
+            let n = Preview::lattice_nodes(&self.scene.medium, self.file.render.preview_nodes).0;
             let nodes = if n.x == n.y && n.y == n.z { n.x.to_string() } else { format!("{}x{}x{}", n.x, n.y, n.z) };
             format!("_nodes{nodes}_fields{}_newcloud", self.field_nodes)
         } else {
