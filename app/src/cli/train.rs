@@ -40,7 +40,8 @@ pub struct TrainCloudArgs {
     /// Output prefix: PREFIX.safetensors, .json, .loss.csv, .loss.png, .checkpoint/.
     #[arg(long)]
     pub out: PathBuf,
-    #[arg(long, value_delimiter = ',', default_value = "64,64,64")]
+    /// Hidden layers' widths (the shipped model's: 128,128,128).
+    #[arg(long, value_delimiter = ',', default_value = "128,128,128")]
     pub hidden: Vec<usize>,
     /// relu, tanh or silu.
     #[arg(long, default_value = "relu")]

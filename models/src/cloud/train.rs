@@ -87,7 +87,7 @@ impl Default for CloudTrainConfig {
     fn default() -> Self {
         CloudTrainConfig {
             schedule: FitSchedule {
-                hidden: vec![64, 64, 64],
+                hidden: vec![128, 128, 128],
                 activation: Activation::Relu,
                 epochs: 20,
                 batch: 512,
