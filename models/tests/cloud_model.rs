@@ -357,3 +357,12 @@ fn data_sets_load_in_order_and_damaged_ones_are_refused() {
     let e = CloudTrainData::load(&[small.data_dir.clone(), cut]).err().unwrap().to_string();
     assert!(e.contains("targets.npy"), "{e}");
 }
+
+/// The recipe's default network is the shipped model's, so `nimbus train cloud` with
+/// the documented flags trains a model of the shipped shape.
+#[test]
+fn the_training_default_is_the_shipped_shape() {
+    let shipped = CloudModel::shipped().unwrap();
+    assert_eq!(shipped.sidecar.hidden, CloudTrainConfig::default().schedule.hidden);
+    assert_eq!(shipped.inputs(), N_FEATURES);
+}

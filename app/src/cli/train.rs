@@ -40,9 +40,10 @@ pub struct TrainCloudArgs {
     /// Output prefix: PREFIX.safetensors, .json, .loss.csv, .loss.png, .checkpoint/.
     #[arg(long)]
     pub out: PathBuf,
-    /// Hidden layers' widths (the shipped model's: 128,128,128).
-    #[arg(long, value_delimiter = ',', default_value = "128,128,128")]
-    pub hidden: Vec<usize>,
+    /// Hidden layers' widths, comma separated (default: the shipped model's, those of
+    /// `CloudTrainConfig::default`).
+    #[arg(long, value_delimiter = ',')]
+    pub hidden: Option<Vec<usize>>,
     /// relu, tanh or silu.
     #[arg(long, default_value = "relu")]
     pub activation: String,
@@ -98,7 +99,7 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
     use models::cloud::train::{BiasReport, CloudTrainConfig, CloudTrainData, TargetColumn};
     let cfg = CloudTrainConfig {
         schedule: models::nn::fit::FitSchedule {
-            hidden: args.hidden.clone(),
+            hidden: args.hidden.clone().unwrap_or_else(|| CloudTrainConfig::default().schedule.hidden),
             activation: Activation::parse(&args.activation)
                 .with_context(|| format!("--activation: unknown {:?} (relu, tanh, silu)", args.activation))?,
             epochs: args.epochs,
