@@ -10,9 +10,9 @@ use models::global::model::{
     FeatureLayout, GlobalModel, TargetKind, predicted_l_i, single_scattering, single_scattering_phase, transform_target,
 };
 use models::global::train::{Network, Quiet, TrainConfig, TrainData, train};
-use models::nn::Activation;
 use models::nn::Optimizer;
 use models::nn::fit::StopAfterEpochs;
+use models::nn::{Activation, Kernel};
 use std::sync::atomic::AtomicBool;
 
 /// A fresh directory, removed with the returned guard.
@@ -145,6 +145,48 @@ fn fast_evaluator_matches_candle_and_files_round_trip() {
             assert!((portable - candle[i]).abs() <= tol, "{act:?} row {i}: portable {portable} vs {}", candle[i]);
         }
     }
+}
+
+#[test]
+fn every_layer_kernel_gives_the_portable_bits() {
+    // Widths that exercise every register blocking: a layer narrower than one vector
+    // block, one that fills a 128-output block, 192 (a partial AVX-512 block), 300
+    // (past the 256 outputs of one AVX-512 pass, with a remainder) and an odd input
+    // count.
+    let dev = Device::Cpu;
+    let widths = [451, 192, 300, 128, 7, 1];
+    let net = Network::glorot(&widths, Activation::Relu, 3, &dev).unwrap();
+    let mut rng = Rng::new(21, 0, 0);
+    for (_, b) in &net.params {
+        let n = b.as_tensor().dims1().unwrap();
+        let v: Vec<f32> = (0..n).map(|_| 0.2 * rng.uniform() - 0.05).collect();
+        b.set(&Tensor::from_vec(v, n, &dev).unwrap()).unwrap();
+    }
+    let mlp = net.to_mlp().unwrap();
+    let mut scratch = mlp.scratch();
+    let n = 64;
+    let xs: Vec<f32> = (0..n * 451).map(|_| 4.0 * rng.uniform() - 2.0).collect();
+    let candle: Vec<f32> = net.forward(&Tensor::from_slice(&xs, (n, 451), &dev).unwrap()).unwrap().to_vec1().unwrap();
+    let kernels = [Kernel::Portable, Kernel::Avx2, Kernel::Avx512];
+    assert!(Kernel::best().available());
+    let mut nonzero = 0;
+    for (i, row) in xs.chunks_exact(451).enumerate() {
+        let portable = mlp.forward_with_kernel(Kernel::Portable, row, &mut scratch).unwrap();
+        assert!(
+            (portable - candle[i]).abs() <= 1e-4 * candle[i].abs().max(1.0),
+            "row {i}: {portable} vs {}",
+            candle[i]
+        );
+        nonzero += usize::from(portable != 0.0);
+        for k in kernels {
+            if let Some(y) = mlp.forward_with_kernel(k, row, &mut scratch) {
+                assert_eq!(y.to_bits(), portable.to_bits(), "{} row {i}: {y} vs portable {portable}", k.name());
+            }
+        }
+        assert_eq!(mlp.forward(row, &mut scratch).to_bits(), portable.to_bits());
+    }
+    // The rows are not all cut off by the ReLUs (the comparison would be empty).
+    assert!(nonzero > n / 2, "{nonzero} of {n} outputs are non-zero");
 }
 
 #[test]

@@ -1,8 +1,9 @@
-//! Dense layers evaluated in f32 without allocation, shared by both models'
+//! Dense layers evaluated in f32 without allocation, shared by the models'
 //! networks: weights stored input-major with the outputs padded to a multiple of 16,
-//! a portable kernel and AVX2 + FMA kernels (one row, or several rows per loaded
-//! weight vector). Both kernels compute each output as the same chain of fused
-//! multiply-adds over the inputs in order, so they give the same bits.
+//! a portable kernel, AVX2 + FMA kernels (one row, or several rows per loaded weight
+//! vector) and an AVX-512 kernel (one row). Every kernel computes each output as the
+//! same chain of fused multiply-adds over the inputs in order, so they give the same
+//! bits.
 
 use serde::{Deserialize, Serialize};
 
@@ -221,6 +222,142 @@ pub(crate) mod avx2 {
                 for v in ys[r * ws..r * ws + layer.outputs].iter_mut() {
                     *v = a.apply(*v);
                 }
+            }
+        }
+    }
+}
+
+/// The layer kernels a CPU can run, fastest last.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kernel {
+    Portable,
+    /// 8-wide FMAs (x86-64 with AVX2 and FMA).
+    Avx2,
+    /// 16-wide FMAs (x86-64 with AVX-512F).
+    Avx512,
+}
+
+impl Kernel {
+    /// Whether this CPU runs the kernel.
+    pub fn available(self) -> bool {
+        match self {
+            Kernel::Portable => true,
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Avx2 => std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma"),
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Avx512 => std::arch::is_x86_feature_detected!("avx512f"),
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => false,
+        }
+    }
+
+    /// The kernel the networks run: the fastest this CPU runs, or the one the
+    /// environment variable `NIMBUS_NN_KERNEL` names (portable, avx2 or avx512) where
+    /// the CPU runs it, so that builds can be compared on one machine (the outputs are
+    /// the same bits, only the time differs). Decided once per process.
+    pub fn best() -> Kernel {
+        static BEST: std::sync::OnceLock<Kernel> = std::sync::OnceLock::new();
+        *BEST.get_or_init(|| {
+            let fastest =
+                [Kernel::Avx512, Kernel::Avx2].into_iter().find(|k| k.available()).unwrap_or(Kernel::Portable);
+            match std::env::var("NIMBUS_NN_KERNEL").ok().as_deref().and_then(Kernel::parse) {
+                Some(k) if k.available() => k,
+                _ => fastest,
+            }
+        })
+    }
+
+    pub fn parse(s: &str) -> Option<Kernel> {
+        [Kernel::Portable, Kernel::Avx2, Kernel::Avx512].into_iter().find(|k| k.name() == s)
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Kernel::Portable => "portable",
+            Kernel::Avx2 => "avx2",
+            Kernel::Avx512 => "avx512",
+        }
+    }
+}
+
+/// AVX-512F kernel for one row: the outputs in register blocks of up to 256 (sixteen
+/// 16-wide accumulators, so layers up to 256 wide take one pass over the inputs),
+/// each weight loaded once. On cores whose 512-bit units run at full width (AMD Zen 5,
+/// recent Intel server cores) this halves the instructions of the AVX2 kernel; the
+/// loads of a single row's pass are what bind it (every weight once), 64 bytes each.
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod avx512 {
+    use super::{Activation, Dense};
+    use std::arch::x86_64::*;
+
+    /// Outputs b .. b + 16 NV of one layer.
+    ///
+    /// # Safety
+    /// The CPU has AVX-512F, b + 16 NV <= layer.stride, x.len() >= layer.inputs,
+    /// y.len() >= layer.stride (and the layer was made by `Dense::new`, so w holds
+    /// inputs * stride values and b holds stride values).
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn block<const NV: usize>(layer: &Dense, b: usize, x: &[f32], y: &mut [f32]) {
+        let s = layer.stride;
+        debug_assert!(b + 16 * NV <= s && x.len() >= layer.inputs && layer.w.len() >= layer.inputs * s && y.len() >= s);
+        // SAFETY: every load reads w[i * s + b .. i * s + b + 16 NV] with i < inputs and
+        // b + 16 NV <= s (so within w, which holds inputs * s values), the bias block
+        // b .. b + 16 NV <= s, and the store writes y[b .. b + 16 NV] within y[..s].
+        unsafe {
+            let mut acc = [_mm512_setzero_ps(); NV];
+            for (j, a) in acc.iter_mut().enumerate() {
+                *a = _mm512_loadu_ps(layer.b.as_ptr().add(b + 16 * j));
+            }
+            let w = layer.w.as_ptr();
+            for (i, &xi) in x[..layer.inputs].iter().enumerate() {
+                let xv = _mm512_set1_ps(xi);
+                let row = w.add(i * s + b);
+                for (j, a) in acc.iter_mut().enumerate() {
+                    *a = _mm512_fmadd_ps(_mm512_loadu_ps(row.add(16 * j)), xv, *a);
+                }
+            }
+            for (j, a) in acc.iter().enumerate() {
+                _mm512_storeu_ps(y.as_mut_ptr().add(b + 16 * j), *a);
+            }
+        }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(crate) fn layer_forward(layer: &Dense, x: &[f32], y: &mut [f32], act: Option<Activation>) {
+        let s = layer.stride;
+        assert!(x.len() >= layer.inputs && y.len() >= s);
+        let mut b = 0;
+        // SAFETY: this function runs only with AVX-512F (its target feature), the
+        // assert above bounds x and y, and every block ends at or before s (a multiple
+        // of 16): the first loop's at b + 256 <= s, the last one's at b + 16 (s - b) / 16.
+        unsafe {
+            while b + 256 <= s {
+                block::<16>(layer, b, x, y);
+                b += 256;
+            }
+            match (s - b) / 16 {
+                0 => {}
+                1 => block::<1>(layer, b, x, y),
+                2 => block::<2>(layer, b, x, y),
+                3 => block::<3>(layer, b, x, y),
+                4 => block::<4>(layer, b, x, y),
+                5 => block::<5>(layer, b, x, y),
+                6 => block::<6>(layer, b, x, y),
+                7 => block::<7>(layer, b, x, y),
+                8 => block::<8>(layer, b, x, y),
+                9 => block::<9>(layer, b, x, y),
+                10 => block::<10>(layer, b, x, y),
+                11 => block::<11>(layer, b, x, y),
+                12 => block::<12>(layer, b, x, y),
+                13 => block::<13>(layer, b, x, y),
+                14 => block::<14>(layer, b, x, y),
+                _ => block::<15>(layer, b, x, y),
+            }
+        }
+        if let Some(a) = act {
+            for v in y[..layer.outputs].iter_mut() {
+                *v = a.apply(*v);
             }
         }
     }

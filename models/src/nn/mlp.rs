@@ -1,9 +1,10 @@
-//! A multilayer perceptron of [`Dense`] layers (the global model's network),
-//! evaluated in f32 without allocation, with AVX2 + FMA when the CPU has them.
+//! A multilayer perceptron of [`Dense`] layers (the global and cloud-aware models'
+//! network), evaluated in f32 without allocation, with the fastest layer kernel the
+//! CPU runs (AVX-512F, AVX2 + FMA, or portable; the same bits from each).
 
+use super::dense::{Activation, Dense, Kernel, layer_forward};
 #[cfg(target_arch = "x86_64")]
-use super::dense::avx2;
-use super::dense::{Activation, Dense, layer_forward};
+use super::dense::{avx2, avx512};
 
 /// The MLP evaluated in f32 without allocation.
 #[derive(Clone, Debug)]
@@ -54,6 +55,13 @@ fn forward_generic(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
 unsafe fn forward_avx2(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
     // The closure inherits this function's target features, so the kernel call is safe.
     forward_with(mlp, x, scratch, |l, x, y, a| avx2::layer_forward(l, x, y, a))
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn forward_avx512(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
+    // The closure inherits this function's target features, so the kernel call is safe.
+    forward_with(mlp, x, scratch, |l, x, y, a| avx512::layer_forward(l, x, y, a))
 }
 
 impl Mlp {
@@ -121,12 +129,33 @@ impl Mlp {
     #[inline]
     pub(crate) fn forward_sized(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
         debug_assert_eq!(x.len(), self.n_inputs());
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU supports the features the function was compiled for.
-            return unsafe { forward_avx2(self, x, scratch) };
+        self.forward_kernel(Kernel::best(), x, scratch)
+    }
+
+    /// The forward pass with the given layer kernel, which the CPU must run
+    /// ([`Kernel::available`]; the best one is [`Kernel::best`]); `scratch` sized.
+    #[inline]
+    fn forward_kernel(&self, kernel: Kernel, x: &[f32], scratch: &mut Scratch) -> f32 {
+        match kernel {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: `Kernel::best` and `forward_with_kernel` only pass kernels the CPU
+            // supports, and these functions need no more than their kernel's features.
+            Kernel::Avx512 => unsafe { forward_avx512(self, x, scratch) },
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: as above.
+            Kernel::Avx2 => unsafe { forward_avx2(self, x, scratch) },
+            _ => forward_generic(self, x, scratch),
         }
-        forward_generic(self, x, scratch)
+    }
+
+    /// [`Mlp::forward`] with a chosen layer kernel, for tests and benchmarks; None if
+    /// this CPU does not run it.
+    pub fn forward_with_kernel(&self, kernel: Kernel, x: &[f32], scratch: &mut Scratch) -> Option<f32> {
+        if !kernel.available() {
+            return None;
+        }
+        self.ensure(scratch);
+        Some(self.forward_kernel(kernel, x, scratch))
     }
 
     /// The portable forward pass (what CPUs without AVX2 + FMA run), for tests.

@@ -1,5 +1,5 @@
 //! What both models' networks share: dense layers evaluated without allocation
-//! (portable and AVX2 + FMA kernels), the MLP evaluator, the optimizers and the
+//! (portable, AVX2 + FMA and AVX-512 kernels), the MLP evaluator, the optimizers and the
 //! training schedule check, the shared training loop, and a vectorized ln(1 + x).
 
 pub mod dense;
@@ -9,6 +9,6 @@ pub mod mlp;
 pub mod optim;
 pub mod refit;
 
-pub use dense::Activation;
+pub use dense::{Activation, Kernel};
 pub use mlp::{Mlp, Scratch};
 pub use optim::Optimizer;

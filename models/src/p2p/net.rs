@@ -11,9 +11,9 @@
 //! architecture.
 
 use super::features::{LevelSlice, P2pFeatures};
+use crate::nn::dense::{Activation, Dense, Kernel, layer_forward};
 #[cfg(target_arch = "x86_64")]
-use crate::nn::dense::avx2;
-use crate::nn::dense::{Activation, Dense, layer_forward};
+use crate::nn::dense::{avx2, avx512};
 use crate::nn::optim::{OptState, Optimizer};
 use candle_core::{DType, Device, Tensor, Var};
 use engine::Rng;
@@ -319,12 +319,22 @@ impl P2pEvaluator {
 
     /// The network's output for one feature row.
     pub fn forward(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU supports the features the function was compiled for.
-            return unsafe { self.forward_avx2(x, s) };
+        match Kernel::best() {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: `Kernel::best` names a kernel the CPU supports.
+            Kernel::Avx512 => unsafe { self.forward_avx512(x, s) },
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: as above.
+            Kernel::Avx2 => unsafe { self.forward_avx2(x, s) },
+            _ => self.forward_portable(x, s),
         }
-        self.forward_portable(x, s)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    unsafe fn forward_avx512(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
+        // The closure inherits this function's target features, so the kernel call is safe.
+        self.forward_with(x, s, 1, |l, x, y, _| avx512::layer_forward(l, x, y, RELU))
     }
 
     #[cfg(target_arch = "x86_64")]

@@ -423,6 +423,14 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
         // burst of other load lands in one round of one measurement, not in a
         // difference of two.
         let (mut total, mut features, mut network, mut event) = (vec![], vec![], vec![], vec![]);
+        let kernels: Vec<models::nn::Kernel> =
+            // The portable kernel (CPUs without AVX2) is two orders of magnitude slower
+            // and left out.
+            [models::nn::Kernel::Avx2, models::nn::Kernel::Avx512]
+                .into_iter()
+                .filter(|k| k.available())
+                .collect();
+        let mut kernel_us: Vec<Vec<f64>> = vec![vec![]; kernels.len()];
         let mut in_order = vec![];
         for round in 0..=args.rounds {
             let t = std::time::Instant::now();
@@ -450,6 +458,20 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
                 sink += model.predict_features(&rows[k * nf..(k + 1) * nf], &mut scratch);
             }
             let network_us = t.elapsed().as_secs_f64() * 1e6 / args.n as f64;
+            // The network alone with each layer kernel this CPU runs (the rows as
+            // they are: the cost does not depend on the values).
+            let mut per_kernel = vec![];
+            for &k in &kernels {
+                let t = std::time::Instant::now();
+                for i in 0..args.n {
+                    let j = i % queries.len();
+                    sink += model
+                        .mlp
+                        .forward_with_kernel(k, &rows[j * nf..j * nf + model.inputs()], &mut scratch)
+                        .unwrap_or(0.0);
+                }
+                per_kernel.push(t.elapsed().as_secs_f64() * 1e6 / args.n as f64);
+            }
             let t = std::time::Instant::now();
             for i in 0..m {
                 let (p, w) = queries[i % queries.len()];
@@ -469,6 +491,9 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
                 features.push(features_us);
                 network.push(network_us);
                 event.push(event_us);
+                for (v, us) in kernel_us.iter_mut().zip(per_kernel) {
+                    v.push(us);
+                }
             }
         }
         std::hint::black_box(sink);
@@ -512,7 +537,19 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
             total_us / event_us
         );
         println!("| features alone | {features_us:.2} us ({features_range}) | |");
-        println!("| network alone, on precomputed features | {network_us:.2} us ({network_range}) | |");
+        println!(
+            "| network alone, on precomputed features ({} kernel) | {network_us:.2} us ({network_range}) | |",
+            models::nn::Kernel::best().name()
+        );
+        for (k, v) in kernels.iter().zip(kernel_us.iter_mut()) {
+            let range = spread(v);
+            let us = median(v);
+            println!(
+                "| network alone, {} kernel | {us:.2} us ({range}) = {:.2}x the time of the best kernel | |",
+                k.name(),
+                us / network_us
+            );
+        }
         println!("| path-traced scattering event (free flight + NEE) | {event_us:.3} us ({event_range}) | |");
         Ok(())
     })
