@@ -278,6 +278,22 @@ impl Kernel {
             Kernel::Avx512 => "avx512",
         }
     }
+
+    /// One layer with this kernel: y[..stride] = act(W x + b), padding outputs
+    /// included. A kernel this CPU does not run falls back to the portable one, which
+    /// gives the same bits; the check is a cached feature test per layer.
+    #[inline]
+    pub(crate) fn layer_forward(self, layer: &Dense, x: &[f32], y: &mut [f32], act: Option<Activation>) {
+        match self {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: the CPU has AVX-512F (checked by `available`).
+            Kernel::Avx512 if self.available() => unsafe { avx512::layer_forward(layer, x, y, act) },
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: the CPU has AVX2 and FMA (checked by `available`).
+            Kernel::Avx2 if self.available() => unsafe { avx2::layer_forward(layer, x, y, act) },
+            _ => layer_forward(layer, x, y, act),
+        }
+    }
 }
 
 /// AVX-512F kernel for one row: the outputs in register blocks of up to 256 (sixteen

@@ -2,9 +2,7 @@
 //! network), evaluated in f32 without allocation, with the fastest layer kernel the
 //! CPU runs (AVX-512F, AVX2 + FMA, or portable; the same bits from each).
 
-use super::dense::{Activation, Dense, Kernel, layer_forward};
-#[cfg(target_arch = "x86_64")]
-use super::dense::{avx2, avx512};
+use super::dense::{Activation, Dense, Kernel};
 
 /// The MLP evaluated in f32 without allocation.
 #[derive(Clone, Debug)]
@@ -24,44 +22,20 @@ pub struct Scratch {
     pub(crate) features: Vec<f32>,
 }
 
-/// The forward pass with a given layer kernel.
+/// The forward pass with one layer kernel.
 #[inline(always)]
-fn forward_with(
-    mlp: &Mlp,
-    x: &[f32],
-    scratch: &mut Scratch,
-    mut layer_fn: impl FnMut(&Dense, &[f32], &mut [f32], Option<Activation>),
-) -> f32 {
+fn forward_with(mlp: &Mlp, x: &[f32], scratch: &mut Scratch, kernel: Kernel) -> f32 {
     let (mut cur, mut next) = (std::mem::take(&mut scratch.a), std::mem::take(&mut scratch.b));
     cur[..x.len()].copy_from_slice(x);
     let last = mlp.layers.len() - 1;
     for (l, layer) in mlp.layers.iter().enumerate() {
-        layer_fn(layer, &cur, &mut next, (l < last).then_some(mlp.activation));
+        kernel.layer_forward(layer, &cur, &mut next, (l < last).then_some(mlp.activation));
         std::mem::swap(&mut cur, &mut next);
     }
     let out = cur[0];
     scratch.a = cur;
     scratch.b = next;
     out
-}
-
-#[inline(always)]
-fn forward_generic(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
-    forward_with(mlp, x, scratch, layer_forward)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn forward_avx2(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
-    // The closure inherits this function's target features, so the kernel call is safe.
-    forward_with(mlp, x, scratch, |l, x, y, a| avx2::layer_forward(l, x, y, a))
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn forward_avx512(mlp: &Mlp, x: &[f32], scratch: &mut Scratch) -> f32 {
-    // The closure inherits this function's target features, so the kernel call is safe.
-    forward_with(mlp, x, scratch, |l, x, y, a| avx512::layer_forward(l, x, y, a))
 }
 
 impl Mlp {
@@ -129,23 +103,7 @@ impl Mlp {
     #[inline]
     pub(crate) fn forward_sized(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
         debug_assert_eq!(x.len(), self.n_inputs());
-        self.forward_kernel(Kernel::best(), x, scratch)
-    }
-
-    /// The forward pass with the given layer kernel, which the CPU must run
-    /// ([`Kernel::available`]; the best one is [`Kernel::best`]); `scratch` sized.
-    #[inline]
-    fn forward_kernel(&self, kernel: Kernel, x: &[f32], scratch: &mut Scratch) -> f32 {
-        match kernel {
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: `Kernel::best` and `forward_with_kernel` only pass kernels the CPU
-            // supports, and these functions need no more than their kernel's features.
-            Kernel::Avx512 => unsafe { forward_avx512(self, x, scratch) },
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: as above.
-            Kernel::Avx2 => unsafe { forward_avx2(self, x, scratch) },
-            _ => forward_generic(self, x, scratch),
-        }
+        forward_with(self, x, scratch, Kernel::best())
     }
 
     /// [`Mlp::forward`] with a chosen layer kernel, for tests and benchmarks; None if
@@ -155,13 +113,13 @@ impl Mlp {
             return None;
         }
         self.ensure(scratch);
-        Some(self.forward_kernel(kernel, x, scratch))
+        Some(forward_with(self, x, scratch, kernel))
     }
 
     /// The portable forward pass (what CPUs without AVX2 + FMA run), for tests.
     pub fn forward_portable(&self, x: &[f32], scratch: &mut Scratch) -> f32 {
         self.ensure(scratch);
-        forward_generic(self, x, scratch)
+        forward_with(self, x, scratch, Kernel::Portable)
     }
 
     /// Batched entry point: `xs` holds rows of n_inputs values, one output per row.

@@ -11,9 +11,9 @@
 //! architecture.
 
 use super::features::{LevelSlice, P2pFeatures};
-use crate::nn::dense::{Activation, Dense, Kernel, layer_forward};
 #[cfg(target_arch = "x86_64")]
-use crate::nn::dense::{avx2, avx512};
+use crate::nn::dense::avx2;
+use crate::nn::dense::{Activation, Dense, Kernel, layer_forward};
 use crate::nn::optim::{OptState, Optimizer};
 use candle_core::{DType, Device, Tensor, Var};
 use engine::Rng;
@@ -317,31 +317,11 @@ impl P2pEvaluator {
         P2pScratch { a: vec![0.0; w], b: vec![0.0; w], prev: vec![0.0; w] }
     }
 
-    /// The network's output for one feature row.
+    /// The network's output for one feature row, with the fastest layer kernel the CPU
+    /// runs ([`Kernel::best`]).
     pub fn forward(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
-        match Kernel::best() {
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: `Kernel::best` names a kernel the CPU supports.
-            Kernel::Avx512 => unsafe { self.forward_avx512(x, s) },
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: as above.
-            Kernel::Avx2 => unsafe { self.forward_avx2(x, s) },
-            _ => self.forward_portable(x, s),
-        }
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx512f")]
-    unsafe fn forward_avx512(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
-        // The closure inherits this function's target features, so the kernel call is safe.
-        self.forward_with(x, s, 1, |l, x, y, _| avx512::layer_forward(l, x, y, RELU))
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    unsafe fn forward_avx2(&self, x: &[f32], s: &mut P2pScratch) -> f32 {
-        // The closure inherits this function's target features, so the kernel call is safe.
-        self.forward_with(x, s, 1, |l, x, y, _| avx2::layer_forward(l, x, y, RELU))
+        let kernel = Kernel::best();
+        self.forward_with(x, s, 1, |l, x, y, _| kernel.layer_forward(l, x, y, RELU))
     }
 
     /// The same pass with the portable kernel (what CPUs without AVX2 + FMA run;

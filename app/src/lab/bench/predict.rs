@@ -541,14 +541,14 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
             "| network alone, on precomputed features ({} kernel) | {network_us:.2} us ({network_range}) | |",
             models::nn::Kernel::best().name()
         );
-        for (k, v) in kernels.iter().zip(kernel_us.iter_mut()) {
-            let range = spread(v);
-            let us = median(v);
-            println!(
-                "| network alone, {} kernel | {us:.2} us ({range}) = {:.2}x the time of the best kernel | |",
-                k.name(),
-                us / network_us
-            );
+        // Each kernel's median against the one the networks run, both from the loop above.
+        let kernel_medians: Vec<(String, f64)> = kernel_us.iter_mut().map(|v| (spread(v), median(v))).collect();
+        let best_us =
+            kernels.iter().zip(&kernel_medians).find(|(k, _)| **k == models::nn::Kernel::best()).map(|(_, m)| m.1);
+        for (k, (range, us)) in kernels.iter().zip(&kernel_medians) {
+            let ratio = best_us
+                .map(|b| format!(" = {:.2}x the time of the {} kernel", us / b, models::nn::Kernel::best().name()));
+            println!("| network alone, {} kernel | {us:.2} us ({range}){} | |", k.name(), ratio.unwrap_or_default());
         }
         println!("| path-traced scattering event (free flight + NEE) | {event_us:.3} us ({event_range}) | |");
         Ok(())
