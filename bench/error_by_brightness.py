@@ -16,17 +16,8 @@ bench/README.md for the install).
 import sys
 
 import numpy as np
-import mitsuba as mi
 
-mi.set_variant("scalar_rgb")
-
-
-def load(path):
-    out = {}
-    for name, bitmap in mi.Bitmap(path).split():
-        a = np.array(bitmap)
-        out[name] = a.mean(-1) if a.ndim == 3 else a
-    return out
+from exr_layers import load
 
 
 def main():
