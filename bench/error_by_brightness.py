@@ -1,12 +1,16 @@
 #!/usr/bin/env python3
 """Where a learned image's error lies: the higher orders of two runs of a preview (or
 prediction) against a path-traced reference, per fifth of the cloud's pixels ranked by
-the reference's brightness, and per band of rows and of columns.
+brightness, and per band of rows and of columns.
 
-    python3 bench/error_by_brightness.py REF.exr RUN1.exr RUN2.exr
+    python3 bench/error_by_brightness.py REF.exr RUN1.exr RUN2.exr RANK.exr
 
 REF is a `nimbus render --reference` EXR, RUN1 and RUN2 two renders of the same scene
-with different seeds (their mean is compared, their difference gives their own noise).
+with different seeds (their mean is compared, their difference gives their own noise),
+RANK a second reference of another seed, whose brightness ranks the pixels. Ranking by
+REF itself would select its noise: its dimmest pixels are those its noise made dim,
+so every image would read too bright there and too dark in its brightest pixels, an
+unbiased one included.
 Prints, per group, the higher orders' relative bias (sum of the runs' `high` layer over
 the reference's, minus 1), the higher orders' share of the reference there, and the
 per-pixel relative RMSE of the full image with both images' noise subtracted
@@ -21,17 +25,17 @@ from exr_layers import load
 
 
 def main():
-    if len(sys.argv) != 4:
+    if len(sys.argv) != 5:
         sys.exit(__doc__)
-    ref, a, b = (load(p) for p in sys.argv[1:4])
-    for img, path in ((ref, sys.argv[1]), (a, sys.argv[2]), (b, sys.argv[3])):
+    ref, a, b, rank = (load(p) for p in sys.argv[1:5])
+    for img, path in zip((ref, a, b, rank), sys.argv[1:5]):
         for layer in ("full", "high"):
             if layer not in img:
                 sys.exit(f"{path}: no layer '{layer}'")
     if "variance" not in ref or "direct" not in ref:
         sys.exit(f"{sys.argv[1]}: not a reference render (needs the 'variance' and 'direct' layers)")
-    if a["full"].shape != ref["full"].shape or b["full"].shape != ref["full"].shape:
-        sys.exit("the three images differ in size")
+    if any(img["full"].shape != ref["full"].shape for img in (a, b, rank)):
+        sys.exit("the four images differ in size")
     mean = {k: (a[k] + b[k]) / 2 for k in ("full", "high")}
     own = (a["full"] - b["full"]) ** 2 / 4
     err2 = (mean["full"] - ref["full"]) ** 2 - ref["variance"] - own
@@ -48,10 +52,10 @@ def main():
         return f"higher orders {100 * bias:+.1f} % (their share {share:.2f}), RMSE floor {100 * rmse:.1f} %"
 
     print(f"all cloud pixels: {row(cloud)}")
-    values = ref["full"][cloud]
+    values = rank["full"][cloud]
     edges = np.quantile(values, np.linspace(0, 1, 6))
     for i in range(5):
-        mask = cloud & (ref["full"] >= edges[i]) & (ref["full"] <= edges[i + 1])
+        mask = cloud & (rank["full"] >= edges[i]) & (rank["full"] <= edges[i + 1])
         print(f"brightness fifth {i + 1} (darkest first): {row(mask)}")
     ys, xs = np.nonzero(cloud)
     for axis, coords in (("rows", ys), ("columns", xs)):
