@@ -51,12 +51,10 @@ def main():
     else:
         c, c_var = corr[0]["full"], corr[0]["variance"]
 
-    def floor(img, noise_var):
+    def floor(img, noise_var=0.0):
+        """Relative RMSE against REF with REF's noise and `noise_var` (the image's own
+        noise) subtracted; without `noise_var`, the image's noise stays in."""
         e2 = (img - ref["full"]) ** 2 - ref["variance"] - noise_var
-        return 100 * np.sqrt(max(e2[cloud].mean(), 0.0)) / scale
-
-    def rmse(img):
-        e2 = (img - ref["full"]) ** 2 - ref["variance"]
         return 100 * np.sqrt(max(e2[cloud].mean(), 0.0)) / scale
 
     def blur(x, s):
@@ -77,7 +75,7 @@ def main():
         out = preview + blur(c - preview, s)
         v = blur_var(c_var, s)
         print(f"blur sigma {s} px: RMSE floor {floor(out, preview_var + v):.2f} %, with the correction's noise "
-              f"{rmse(out):.2f} % (its noise {100 * np.sqrt(v[cloud].mean()) / scale:.2f} %)")
+              f"{floor(out):.2f} % (its noise {100 * np.sqrt(v[cloud].mean()) / scale:.2f} %)")
 
 
 if __name__ == "__main__":

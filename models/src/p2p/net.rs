@@ -333,8 +333,8 @@ impl P2pEvaluator {
     /// One output per row of `xs`, BATCH rows at a time.
     pub fn forward_batch(&self, xs: &[f32], out: &mut [f32], s: &mut P2pBatchScratch) {
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU supports the features the function was compiled for.
+        if Kernel::Avx2.available() {
+            // SAFETY: the CPU has AVX2 and FMA, the features the function was compiled for.
             return unsafe { self.forward_batch_avx2(xs, out, s) };
         }
         self.forward_batch_portable(xs, out, s)
