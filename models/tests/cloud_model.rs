@@ -366,3 +366,67 @@ fn the_training_default_is_the_shipped_shape() {
     assert_eq!(shipped.sidecar.hidden, CloudTrainConfig::default().schedule.hidden);
     assert_eq!(shipped.inputs(), N_FEATURES);
 }
+
+/// Fine-tuning: a run started from a model keeps its standardization and, with a
+/// learning rate too small to move the weights, returns its predictions; with a real
+/// one it moves away from them. A network of another shape is refused naming --init,
+/// and the starting model is part of the run's identity (a resume from another model
+/// is refused) and named in the sidecar.
+#[test]
+fn fine_tuning_starts_from_the_model() {
+    let Small { root, data_dir, data, cfg, .. } = small_training_set();
+    let (base, _) = train(data.clone(), None, &cfg, &root.path().join("base"), false, "test", "test", &Quiet).unwrap();
+    let from = |model: &CloudModel, name: &str| {
+        let mut d = CloudTrainData::load(std::slice::from_ref(&data_dir)).unwrap();
+        d.start_from(model.clone(), name.into());
+        d
+    };
+    let still = CloudTrainConfig {
+        schedule: models::nn::fit::FitSchedule { lr: 1e-20, epochs: 1, ..cfg.schedule.clone() },
+        ..cfg.clone()
+    };
+    let (kept, _) =
+        train(from(&base, "base"), None, &still, &root.path().join("kept"), false, "test", "test", &Quiet).unwrap();
+    assert_eq!(kept.sidecar.feature_mean, base.sidecar.feature_mean);
+    assert_eq!(kept.sidecar.feature_std, base.sidecar.feature_std);
+    assert_eq!(
+        (kept.sidecar.target_mean, kept.sidecar.target_std),
+        (base.sidecar.target_mean, base.sidecar.target_std)
+    );
+    let (mut s1, mut s2) = (base.mlp.scratch(), kept.mlp.scratch());
+    let mut moved = 0usize;
+    for row in data.features.chunks_exact(N_FEATURES) {
+        let (a, b) = (base.predict_features(row, &mut s1), kept.predict_features(row, &mut s2));
+        assert!((a - b).abs() <= 1e-5 * a.abs().max(1e-6), "{a} vs {b}: a still run moved the model");
+    }
+    let tuned_cfg = CloudTrainConfig {
+        schedule: models::nn::fit::FitSchedule { epochs: 3, ..cfg.schedule.clone() },
+        ..cfg.clone()
+    };
+    let (tuned, _) =
+        train(from(&base, "base"), None, &tuned_cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
+    for row in data.features.chunks_exact(N_FEATURES) {
+        moved += (base.predict_features(row, &mut s1) != tuned.predict_features(row, &mut s2)) as usize;
+    }
+    assert!(moved > 0, "fine-tuning did not move the model");
+    let side: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(root.path().join("a.json")).unwrap()).unwrap();
+    assert_eq!(side["training"]["init"], serde_json::json!("base"));
+    // Stopped and resumed from another starting model: refused; from the same one:
+    // the straight run's weights.
+    train_stopped(&from(&base, "base"), &tuned_cfg, &root.path().join("b"));
+    let e = train(from(&base, "other"), None, &tuned_cfg, &root.path().join("b"), true, "test", "test", &Quiet)
+        .err()
+        .unwrap();
+    assert!(e.to_string().contains("other settings or data"), "{e}");
+    train(from(&base, "base"), None, &tuned_cfg, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
+    assert_same_weights(root.path(), "a resumed fine-tuning differs");
+    // Another network shape: refused, naming the flag.
+    let wide = CloudTrainConfig {
+        schedule: models::nn::fit::FitSchedule { hidden: vec![8], ..cfg.schedule.clone() },
+        ..cfg.clone()
+    };
+    let e =
+        train(from(&base, "base"), None, &wide, &root.path().join("w"), false, "test", "test", &Quiet).err().unwrap();
+    assert!(e.to_string().contains("--init"), "{e}");
+}

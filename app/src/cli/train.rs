@@ -37,6 +37,10 @@ pub struct TrainCloudArgs {
     /// test and held-out reports keep the path-traced targets).
     #[arg(long, value_delimiter = ',')]
     pub teacher: Vec<PathBuf>,
+    /// Fine-tune: start from this cloud-aware model (.safetensors) and keep its
+    /// standardization, instead of random weights; its network must be this run's.
+    #[arg(long)]
+    pub init: Option<PathBuf>,
     /// Output prefix: PREFIX.safetensors, .json, .loss.csv, .loss.png, .checkpoint/.
     #[arg(long)]
     pub out: PathBuf,
@@ -145,6 +149,13 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
             teachers.len(),
             t.elapsed().as_secs_f64()
         );
+    }
+    if let Some(p) = &args.init {
+        let named = || format!("--init {}", p.display());
+        let (bytes, sidecar) = models::global::model::read_model_files(p).with_context(named)?;
+        let model = models::cloud::model::CloudModel::from_bytes(&bytes, &sidecar, p).with_context(named)?;
+        let fingerprint = format!("{:016x}", models::fingerprint::fingerprint(&[&bytes, sidecar.as_bytes()]));
+        data.start_from(model, fingerprint);
     }
     let held_out = match &args.held_out {
         Some(d) => {

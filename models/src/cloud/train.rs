@@ -132,6 +132,16 @@ pub struct CloudTrainData {
     pub sources: Vec<String>,
     /// Set by [`CloudTrainData::distill_from`].
     pub distilled: Option<Distilled>,
+    /// Set by [`CloudTrainData::start_from`].
+    pub init: Option<WarmStart>,
+}
+
+/// A trained model to start from (fine-tuning): its weights and its standardization.
+#[derive(Clone, Debug)]
+pub struct WarmStart {
+    pub model: CloudModel,
+    /// Its fingerprint (part of the run's identity).
+    pub fingerprint: String,
 }
 
 /// Distillation's training targets and where they come from.
@@ -174,6 +184,7 @@ impl CloudTrainData {
             clouds: Vec::with_capacity(rows),
             sources: vec![],
             distilled: None,
+            init: None,
         };
         for (k, (d, manifest)) in dirs.iter().zip(&manifests).enumerate() {
             CloudDataset::read_rows(d, manifest, &mut out.features, &mut out.targets).map_err(data)?;
@@ -185,6 +196,14 @@ impl CloudTrainData {
 
     pub fn len(&self) -> usize {
         self.clouds.len()
+    }
+
+    /// Fine-tuning: the fit starts from `model`'s weights and keeps its feature and
+    /// target standardization (the weights mean nothing under other statistics), so
+    /// its network and inputs must be the run's. `fingerprint` names it in the run's
+    /// identity, so a resume from another model is refused.
+    pub fn start_from(&mut self, model: CloudModel, fingerprint: String) {
+        self.init = Some(WarmStart { model, fingerprint });
     }
 
     pub fn is_empty(&self) -> bool {
@@ -388,9 +407,31 @@ pub fn train(
         let sd = (q / n - (s / n).powi(2)).max(0.0).sqrt();
         if sd < 1e-6 { 1.0 } else { sd }
     };
-    let feature_mean: Vec<f32> = mean.iter().map(|m| (m / n) as f32).collect();
-    let feature_std: Vec<f32> = mean.iter().zip(&sq).map(|(m, q)| std_of(*m, *q) as f32).collect();
-    let (target_mean, target_std) = ((ym / n) as f32, std_of(ym, ysq) as f32);
+    let (feature_mean, feature_std, target_mean, target_std) = match &data.init {
+        Some(start) => {
+            let (m, s) = (&start.model.sidecar, &cfg.schedule);
+            if start.model.inputs() != n_in || m.hidden != s.hidden || m.activation != s.activation {
+                return Err(TrainError::Setting {
+                    flag: "--init",
+                    why: format!(
+                        "the model reads {} inputs through {:?} ({:?}); this run's network reads {n_in} through {:?} ({:?})",
+                        start.model.inputs(),
+                        m.hidden,
+                        m.activation,
+                        s.hidden,
+                        s.activation
+                    ),
+                });
+            }
+            (m.feature_mean.clone(), m.feature_std.clone(), m.target_mean, m.target_std)
+        }
+        None => (
+            mean.iter().map(|m| (m / n) as f32).collect(),
+            mean.iter().zip(&sq).map(|(m, q)| std_of(*m, *q) as f32).collect(),
+            (ym / n) as f32,
+            std_of(ym, ysq) as f32,
+        ),
+    };
     let standardize_row = |row: &mut [f32]| {
         for (k, v) in row[..n_in].iter_mut().enumerate() {
             *v = (*v - feature_mean[k]) / feature_std[k];
@@ -425,14 +466,20 @@ pub fn train(
         x_test,
         y_test,
         loss: Loss::RelativeL2 { mean: target_mean, std: target_std, eps: cfg.eps, power: cfg.loss_power },
+        init: data.init.as_ref().map(|s| s.model.mlp.layers_out_in()),
     };
     let paths = TrainPaths::new(out);
     // The refit follows the stochastic fit deterministically, so a checkpoint stands
     // for any refit: a finished run resumed with another --refit-output refits only.
     let fit_cfg = CloudTrainConfig { refit_output: 0, ..cfg.clone() };
     let teachers: &[String] = data.distilled.as_ref().map_or(&[], |d| &d.teachers);
-    let sources: Vec<String> =
-        data.sources.iter().cloned().chain(teachers.iter().map(|t| format!("teacher {t}"))).collect();
+    let sources: Vec<String> = data
+        .sources
+        .iter()
+        .cloned()
+        .chain(teachers.iter().map(|t| format!("teacher {t}")))
+        .chain(data.init.iter().map(|s| format!("init {}", s.fingerprint)))
+        .collect();
     let identity = RunIdentity { config: &fit_cfg, sources: &sources, points: data.len() };
     let Fitted { mut net, history, samples_per_second } =
         fit(&fit_data, &cfg.schedule, &paths, resume, identity, observer)?;
@@ -480,6 +527,7 @@ pub fn train(
         "code_version": code_version,
         "data": data.sources,
         "teachers": teachers,
+        "init": data.init.as_ref().map(|s| s.fingerprint.clone()),
         "points": data.len(),
         "config": cfg,
         "report": report,

@@ -246,6 +246,7 @@ pub fn train(
         x_test: prep.x_test.clone(),
         y_test: prep.y_test.clone(),
         loss: Loss::Mse,
+        init: None,
     };
     let identity = RunIdentity { config: cfg, sources: &data.sources, points: data.len() };
     let Fitted { net, history, samples_per_second } =

@@ -235,6 +235,9 @@ pub struct FitData {
     pub x_test: Vec<f32>,
     pub y_test: Vec<f32>,
     pub loss: Loss,
+    /// Start from these layers, (weights [out][in] row-major, bias) each, instead of
+    /// a random initialization (fine-tuning); a checkpoint being resumed wins.
+    pub init: Option<Vec<(Vec<f32>, Vec<f32>)>>,
 }
 
 /// What a fit minimizes.
@@ -350,6 +353,23 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
     widths.extend(&cfg.hidden);
     widths.push(1);
     let net = Network::glorot(&widths, cfg.activation, cfg.seed, &dev)?;
+    if let Some(layers) = &data.init {
+        if layers.len() != net.params.len() {
+            return Err(TrainError::Data(format!(
+                "the starting network has {} layers, this one {}",
+                layers.len(),
+                net.params.len()
+            )));
+        }
+        for (l, ((w, b), (wv, bv))) in layers.iter().zip(&net.params).enumerate() {
+            let (o, i) = wv.as_tensor().dims2()?;
+            if w.len() != o * i || b.len() != o {
+                return Err(TrainError::Data(format!("the starting network's layer {l} is not {o} x {i}")));
+            }
+            wv.set(&Tensor::from_slice(w, (o, i), &dev)?)?;
+            bv.set(&Tensor::from_slice(b, o, &dev)?)?;
+        }
+    }
     let vars: Vec<&Var> = net.params.iter().flat_map(|(w, b)| [w, b]).collect();
     let mut opt = OptState::new(&vars)?;
     let mut history: Vec<EpochRecord> = vec![];
@@ -514,7 +534,7 @@ mod tests {
         let n = 64;
         let x: Vec<f32> = (0..n * 3).map(|_| rng.uniform() * 2.0 - 1.0).collect();
         let y: Vec<f32> = x.chunks_exact(3).map(|r| r[0] * r[1] - 0.5 * r[2]).collect();
-        FitData { n_f: 3, x_train: x.clone(), y_train: y.clone(), x_test: x, y_test: y, loss: Loss::Mse }
+        FitData { n_f: 3, x_train: x.clone(), y_train: y.clone(), x_test: x, y_test: y, loss: Loss::Mse, init: None }
     }
 
     fn run(schedule: &FitSchedule, dir: &Path, name: &str, resume: bool, observer: &dyn TrainObserver) -> Fitted {

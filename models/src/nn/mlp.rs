@@ -122,6 +122,22 @@ impl Mlp {
         forward_with(self, x, scratch, Kernel::Portable)
     }
 
+    /// The layers as (weights [out][in] row-major, bias): the layout they were made from.
+    pub fn layers_out_in(&self) -> Vec<(Vec<f32>, Vec<f32>)> {
+        self.layers
+            .iter()
+            .map(|l| {
+                let mut w = vec![0.0f32; l.outputs * l.inputs];
+                for o in 0..l.outputs {
+                    for i in 0..l.inputs {
+                        w[o * l.inputs + i] = l.w[i * l.stride + o];
+                    }
+                }
+                (w, l.b[..l.outputs].to_vec())
+            })
+            .collect()
+    }
+
     /// Batched entry point: `xs` holds rows of n_inputs values, one output per row.
     pub fn forward_batch(&self, xs: &[f32], out: &mut [f32], scratch: &mut Scratch) {
         let n = self.n_inputs();
