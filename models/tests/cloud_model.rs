@@ -2,8 +2,9 @@
 //! bytes for 1 and 2 threads, after a stop and resume, and as merged shards; refuses
 //! changed settings and held-out clouds in training; every row is consistent with its
 //! cloud and vertex; training resumes to the same weights; the fast evaluator agrees
-//! with candle; the model files round-trip and broken ones are refused; and the bound
-//! predictor answers through the engine's trait.
+//! with candle; the model files round-trip and broken ones are refused; fine-tuning
+//! starts from a model and keeps its standardization; and the bound predictor answers
+//! through the engine's trait.
 
 use models::cloud::datagen::{CloudDataset, CloudSpec, HELD_OUT_PRESETS, build_case, generate};
 use models::cloud::features::N_FEATURES;
@@ -394,7 +395,6 @@ fn fine_tuning_starts_from_the_model() {
         (base.sidecar.target_mean, base.sidecar.target_std)
     );
     let (mut s1, mut s2) = (base.mlp.scratch(), kept.mlp.scratch());
-    let mut moved = 0usize;
     for row in data.features.chunks_exact(N_FEATURES) {
         let (a, b) = (base.predict_features(row, &mut s1), kept.predict_features(row, &mut s2));
         assert!((a - b).abs() <= 1e-5 * a.abs().max(1e-6), "{a} vs {b}: a still run moved the model");
@@ -405,6 +405,7 @@ fn fine_tuning_starts_from_the_model() {
     };
     let (tuned, _) =
         train(from(&base, "base"), None, &tuned_cfg, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
+    let mut moved = 0usize;
     for row in data.features.chunks_exact(N_FEATURES) {
         moved += (base.predict_features(row, &mut s1) != tuned.predict_features(row, &mut s2)) as usize;
     }
