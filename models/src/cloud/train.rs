@@ -351,6 +351,24 @@ pub fn train(
     observer: &dyn TrainObserver,
 ) -> Result<(CloudModel, CloudReport), TrainError> {
     cfg.validate()?;
+    // The network reads the first n_in values of each row.
+    let n_in = cfg.derived.inputs();
+    if let Some(start) = &data.init {
+        let (m, s) = (&start.model.sidecar, &cfg.schedule);
+        if start.model.inputs() != n_in || m.hidden != s.hidden || m.activation != s.activation {
+            return Err(TrainError::Setting {
+                flag: "--init",
+                why: format!(
+                    "the model reads {} inputs through {:?} ({:?}); this run's network reads {n_in} through {:?} ({:?})",
+                    start.model.inputs(),
+                    m.hidden,
+                    m.activation,
+                    s.hidden,
+                    s.activation
+                ),
+            });
+        }
+    }
     let started = std::time::Instant::now();
     let col = cfg.target.column();
     // Rows with a finite, non-negative target and finite features.
@@ -388,49 +406,37 @@ pub fn train(
         Some(d) => d.targets[i],
         None => FOUR_PI * data.targets[i * 5 + col],
     };
-    // The network reads the first n_in values of each row.
-    let n_in = cfg.derived.inputs();
-    // Statistics of the training split (f64 accumulation).
-    let (mut mean, mut sq) = (vec![0.0f64; n_in], vec![0.0f64; n_in]);
-    let (mut ym, mut ysq) = (0.0f64, 0.0f64);
-    for &i in &train_rows {
-        for (k, v) in data.row(i)[..n_in].iter().enumerate() {
-            mean[k] += *v as f64;
-            sq[k] += (*v as f64).powi(2);
-        }
-        let y = train_target(i).ln_1p() as f64;
-        ym += y;
-        ysq += y * y;
-    }
-    let n = train_rows.len() as f64;
-    let std_of = |s: f64, q: f64| {
-        let sd = (q / n - (s / n).powi(2)).max(0.0).sqrt();
-        if sd < 1e-6 { 1.0 } else { sd }
-    };
     let (feature_mean, feature_std, target_mean, target_std) = match &data.init {
+        // Fine-tuning keeps the starting model's statistics (checked above).
         Some(start) => {
-            let (m, s) = (&start.model.sidecar, &cfg.schedule);
-            if start.model.inputs() != n_in || m.hidden != s.hidden || m.activation != s.activation {
-                return Err(TrainError::Setting {
-                    flag: "--init",
-                    why: format!(
-                        "the model reads {} inputs through {:?} ({:?}); this run's network reads {n_in} through {:?} ({:?})",
-                        start.model.inputs(),
-                        m.hidden,
-                        m.activation,
-                        s.hidden,
-                        s.activation
-                    ),
-                });
-            }
+            let m = &start.model.sidecar;
             (m.feature_mean.clone(), m.feature_std.clone(), m.target_mean, m.target_std)
         }
-        None => (
-            mean.iter().map(|m| (m / n) as f32).collect(),
-            mean.iter().zip(&sq).map(|(m, q)| std_of(*m, *q) as f32).collect(),
-            (ym / n) as f32,
-            std_of(ym, ysq) as f32,
-        ),
+        // Statistics of the training split (f64 accumulation).
+        None => {
+            let (mut mean, mut sq) = (vec![0.0f64; n_in], vec![0.0f64; n_in]);
+            let (mut ym, mut ysq) = (0.0f64, 0.0f64);
+            for &i in &train_rows {
+                for (k, v) in data.row(i)[..n_in].iter().enumerate() {
+                    mean[k] += *v as f64;
+                    sq[k] += (*v as f64).powi(2);
+                }
+                let y = train_target(i).ln_1p() as f64;
+                ym += y;
+                ysq += y * y;
+            }
+            let n = train_rows.len() as f64;
+            let std_of = |s: f64, q: f64| {
+                let sd = (q / n - (s / n).powi(2)).max(0.0).sqrt();
+                if sd < 1e-6 { 1.0 } else { sd }
+            };
+            (
+                mean.iter().map(|m| (m / n) as f32).collect(),
+                mean.iter().zip(&sq).map(|(m, q)| std_of(*m, *q) as f32).collect(),
+                (ym / n) as f32,
+                std_of(ym, ysq) as f32,
+            )
+        }
     };
     let standardize_row = |row: &mut [f32]| {
         for (k, v) in row[..n_in].iter_mut().enumerate() {
