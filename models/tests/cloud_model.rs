@@ -3,7 +3,8 @@
 //! changed settings and held-out clouds in training; every row is consistent with its
 //! cloud and vertex; training resumes to the same weights; the fast evaluator agrees
 //! with candle; the model files round-trip and broken ones are refused; fine-tuning
-//! starts from a model and keeps its standardization; and the bound predictor answers
+//! starts from a model and keeps its standardization; rows weighted by their targets'
+//! predicted noise train, resume and are recorded; and the bound predictor answers
 //! through the engine's trait.
 
 use models::cloud::datagen::{CloudDataset, CloudSpec, HELD_OUT_PRESETS, build_case, generate};
@@ -430,4 +431,51 @@ fn fine_tuning_starts_from_the_model() {
     let e =
         train(from(&base, "base"), None, &wide, &root.path().join("w"), false, "test", "test", &Quiet).err().unwrap();
     assert!(e.to_string().contains("--init"), "{e}");
+}
+
+/// Rows weighted by their targets' predicted noise: the run reports the noise model and
+/// records the floor in the sidecar, resumes to the same weights, refuses to resume a
+/// run of other weights, and differs from the unweighted run; a set too small for the
+/// noise model and a distilled run (whose targets carry no path noise) are refused,
+/// naming the flag.
+#[test]
+fn noise_weighted_training_resumes_and_is_recorded() {
+    let Small { root, data, cfg, .. } = small_training_set();
+    let weighted = CloudTrainConfig { noise_weights: Some(0.003), ..cfg.clone() };
+    let err = train(data.clone(), None, &weighted, &root.path().join("few"), false, "test", "test", &Quiet)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("--noise-weights"), "{err}");
+    // Enough rows for the noise model's N_FEATURES + 1 coefficients (four rows each).
+    let s = CloudSpec { points: 4000, points_per_cloud: 40, ..spec() };
+    let dir = root.path().join("big");
+    run(&s, Shard::ALL, &dir, 2, &AtomicBool::new(false)).unwrap();
+    let big = CloudTrainData::load(std::slice::from_ref(&dir)).unwrap();
+    let (model, report) =
+        train(big.clone(), None, &weighted, &root.path().join("a"), false, "test", "test", &Quiet).unwrap();
+    let r = report.noise_weights.as_ref().expect("a weighted run reports its noise model");
+    assert!(r.fit_rows >= 4 * (N_FEATURES + 1), "{r:?}");
+    assert!(r.r_squared.is_finite() && r.weight_quantiles[0] < r.weight_quantiles[2], "{r:?}");
+    let side: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(root.path().join("a.json")).unwrap()).unwrap();
+    assert_eq!(side["training"]["config"]["noise_weights"].as_f64(), Some(0.003f32 as f64));
+    assert!(side["training"]["report"]["noise_weights"]["fit_rows"].is_u64());
+    train_stopped(&big, &weighted, &root.path().join("b"));
+    let e = train(big.clone(), None, &cfg, &root.path().join("b"), true, "test", "test", &Quiet).err().unwrap();
+    assert!(e.to_string().contains("other settings or data"), "{e}");
+    train(big.clone(), None, &weighted, &root.path().join("b"), true, "test", "test", &Quiet).unwrap();
+    assert_same_weights(root.path(), "resumed weighted training differs");
+    let (plain, plain_report) =
+        train(big.clone(), None, &cfg, &root.path().join("c"), false, "test", "test", &Quiet).unwrap();
+    assert!(plain_report.noise_weights.is_none());
+    let row = &big.features[..N_FEATURES];
+    assert_ne!(
+        model.predict_features(row, &mut model.mlp.scratch()),
+        plain.predict_features(row, &mut plain.mlp.scratch())
+    );
+    let mut distilled = big.clone();
+    distilled.distill_from(&[&plain], vec!["plain".into()]).unwrap();
+    let e = train(distilled, None, &weighted, &root.path().join("d"), false, "test", "test", &Quiet).err().unwrap();
+    assert!(e.to_string().contains("--noise-weights"), "{e}");
 }

@@ -91,6 +91,15 @@ pub struct TrainCloudArgs {
     /// at three attenuations) or none.
     #[arg(long, default_value = "coupling")]
     pub derived: String,
+    /// Weigh each row's loss by 1 / (its target's relative noise variance, predicted
+    /// from its features by a ridge regression fitted to the rows' measured noise,
+    /// plus FLOOR): the noisiest targets then count less in what the network pools. A
+    /// weight that depends on the features alone leaves the fit unbiased. FLOOR is the
+    /// relative variance no number of paths removes (about the model's own squared
+    /// error; 0.003 for a 5 % error). Measured in docs/cloud-model.md: lower held-out
+    /// per-cloud bias, higher point errors in dense toplit views; not the shipped recipe.
+    #[arg(long, value_name = "FLOOR")]
+    pub noise_weights: Option<f32>,
     /// Continue from PREFIX.checkpoint/ (same settings and data).
     #[arg(long)]
     pub resume: bool,
@@ -124,6 +133,7 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
         derived: DerivedInputs::parse(&args.derived).with_context(|| {
             format!("--derived {:?}: choose one of {}", args.derived, DerivedInputs::NAMES.join(", "))
         })?,
+        noise_weights: args.noise_weights,
     };
     cfg.validate()?;
     let threads = init_threads(args.run.threads)?;
@@ -206,6 +216,12 @@ fn train_cloud(args: TrainCloudArgs) -> Result<()> {
         "trained on {} points in {:.1} s ({:.0} samples/s)",
         report.train_points, report.seconds, report.samples_per_second
     );
+    if let Some(r) = &report.noise_weights {
+        println!(
+            "noise weights: model fitted on {} rows (R^2 {:.2} of ln variance), weights p10 / p50 / p90 {:.2} / {:.2} / {:.2}, pooled gain {:.2}x",
+            r.fit_rows, r.r_squared, r.weight_quantiles[0], r.weight_quantiles[1], r.weight_quantiles[2], r.pooled_gain
+        );
+    }
     if let Some(r) = &report.refit {
         println!(
             "output layer refitted in {} iterations: training loss {:.4} -> {:.4}, training bias {:+.2} % -> {:+.2} %",

@@ -247,6 +247,7 @@ pub fn train(
         y_test: prep.y_test.clone(),
         loss: Loss::Mse,
         init: None,
+        weights: None,
     };
     let identity = RunIdentity { config: cfg, sources: &data.sources, points: data.len() };
     let Fitted { net, history, samples_per_second } =

@@ -238,6 +238,12 @@ pub struct FitData {
     /// Start from these layers, (weights [out][in] row-major, bias) each, instead of
     /// a random initialization (fine-tuning); a checkpoint being resumed wins.
     pub init: Option<Vec<(Vec<f32>, Vec<f32>)>>,
+    /// Per-row weights of the loss (training rows, then test rows), or None for equal
+    /// weights. Weights that depend on a row's features alone leave the minimizer at
+    /// every input E[y | x] (each input's rows share one weight), so they do not bias
+    /// the fit; they move where a network of finite size spends its capacity and how
+    /// much each row's noise counts in what it pools.
+    pub weights: Option<(Vec<f32>, Vec<f32>)>,
 }
 
 /// What a fit minimizes.
@@ -259,17 +265,23 @@ pub enum Loss {
 }
 
 impl Loss {
-    fn eval(&self, out: &Tensor, y: &Tensor) -> candle_core::Result<Tensor> {
-        match *self {
-            Loss::Mse => candle_nn::loss::mse(out, y),
+    /// The loss of outputs `out` against targets `y`, each row's term times its weight
+    /// in `w` where given (the mean of weighted terms).
+    fn eval(&self, out: &Tensor, y: &Tensor, w: Option<&Tensor>) -> candle_core::Result<Tensor> {
+        let terms = match *self {
+            Loss::Mse => (out - y)?.sqr()?,
             Loss::RelativeL2 { mean, std, eps, power } => {
                 let v = out.affine(std as f64, mean as f64)?.exp()?.affine(1.0, -1.0)?;
                 let mut den = v.detach().sqr()?.affine(1.0, eps as f64)?;
                 if power != 2.0 {
                     den = den.powf(0.5 * power as f64)?;
                 }
-                (v - y)?.sqr()?.div(&den)?.mean_all()
+                (v - y)?.sqr()?.div(&den)?
             }
+        };
+        match w {
+            Some(w) => terms.mul(w)?.mean_all(),
+            None => terms.mean_all(),
         }
     }
 }
@@ -411,16 +423,31 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
         history = st.history;
     }
     let n_train = data.y_train.len();
+    if let Some((wt, we)) = &data.weights {
+        if wt.len() != n_train || we.len() != data.y_test.len() {
+            return Err(TrainError::Data(format!(
+                "{} training and {} test weights for {n_train} and {} rows",
+                wt.len(),
+                we.len(),
+                data.y_test.len()
+            )));
+        }
+    }
     let x_test = Tensor::from_slice(&data.x_test, (data.y_test.len(), n_f), &dev)?;
     let y_test = Tensor::from_slice(&data.y_test, data.y_test.len(), &dev)?;
+    let w_test = match &data.weights {
+        Some((_, we)) => Some(Tensor::from_slice(we, we.len(), &dev)?),
+        None => None,
+    };
     let test_mse = |net: &Network| -> candle_core::Result<f64> {
         let p = net.forward(&x_test)?;
-        data.loss.eval(&p, &y_test)?.to_scalar::<f32>().map(|v| v as f64)
+        data.loss.eval(&p, &y_test, w_test.as_ref())?.to_scalar::<f32>().map(|v| v as f64)
     };
     let mut order: Vec<usize> = (0..n_train).collect();
     let n_batches = n_train.div_ceil(cfg.batch);
     let mut xb = Vec::with_capacity(cfg.batch * n_f);
     let mut yb = Vec::with_capacity(cfg.batch);
+    let mut wb = Vec::with_capacity(cfg.batch);
     let mut trained_samples = 0u64;
     let train_started = std::time::Instant::now();
     for epoch in first_epoch..cfg.epochs {
@@ -436,13 +463,21 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
             }
             xb.clear();
             yb.clear();
+            wb.clear();
             for &i in idx {
                 xb.extend_from_slice(&data.x_train[i * n_f..(i + 1) * n_f]);
                 yb.push(data.y_train[i]);
+                if let Some((wt, _)) = &data.weights {
+                    wb.push(wt[i]);
+                }
             }
             let x = Tensor::from_slice(&xb, (idx.len(), n_f), &dev)?;
             let y = Tensor::from_slice(&yb, idx.len(), &dev)?;
-            let loss = data.loss.eval(&net.forward(&x)?, &y)?;
+            let w = match data.weights {
+                Some(_) => Some(Tensor::from_slice(&wb, idx.len(), &dev)?),
+                None => None,
+            };
+            let loss = data.loss.eval(&net.forward(&x)?, &y, w.as_ref())?;
             let grads = loss.backward()?;
             opt.apply(cfg.optimizer, lr, &vars, &grads)?;
             if epoch >= average_from {
@@ -534,7 +569,16 @@ mod tests {
         let n = 64;
         let x: Vec<f32> = (0..n * 3).map(|_| rng.uniform() * 2.0 - 1.0).collect();
         let y: Vec<f32> = x.chunks_exact(3).map(|r| r[0] * r[1] - 0.5 * r[2]).collect();
-        FitData { n_f: 3, x_train: x.clone(), y_train: y.clone(), x_test: x, y_test: y, loss: Loss::Mse, init: None }
+        FitData {
+            n_f: 3,
+            x_train: x.clone(),
+            y_train: y.clone(),
+            x_test: x,
+            y_test: y,
+            loss: Loss::Mse,
+            init: None,
+            weights: None,
+        }
     }
 
     fn run(schedule: &FitSchedule, dir: &Path, name: &str, resume: bool, observer: &dyn TrainObserver) -> Fitted {
@@ -603,5 +647,46 @@ mod tests {
         let resumed = run(&s, dir.path(), "b", true, &Quiet);
         assert_eq!(resumed.history.len(), 5);
         assert_eq!(values(&resumed.net), straight, "resumed averaging differs");
+    }
+
+    /// Row weights reach the loss through the shuffle and the batches: at one input
+    /// whose rows read 0 (weight 1) and 1 (weight 10) in equal numbers, the fit
+    /// settles at their weighted mean, 10 / 11, and without weights at 1 / 2; mismatched
+    /// weights are refused.
+    #[test]
+    fn row_weights_follow_their_rows() {
+        let n = 64;
+        let x: Vec<f32> = (0..n).map(|i| if i % 2 == 0 { 0.5 } else { -0.5 }).collect();
+        let y: Vec<f32> = (0..n).map(|i| ((i / 2) % 2) as f32).collect();
+        let w: Vec<f32> = y.iter().map(|v| if *v > 0.5 { 10.0 } else { 1.0 }).collect();
+        let s = FitSchedule { hidden: vec![4], epochs: 300, batch: 16, lr: 1e-2, lr_decay: 0.99, ..schedule(1, 0) };
+        let fit_with = |weights: Option<(Vec<f32>, Vec<f32>)>, name: &str| {
+            let dir = tempfile::tempdir().unwrap();
+            let data = FitData {
+                n_f: 1,
+                x_train: x.clone(),
+                y_train: y.clone(),
+                x_test: x.clone(),
+                y_test: y.clone(),
+                loss: Loss::Mse,
+                init: None,
+                weights,
+            };
+            let identity = RunIdentity { config: &s, sources: &[], points: n };
+            fit(&data, &s, &TrainPaths::new(&dir.path().join(name)), false, identity, &Quiet)
+        };
+        let at = |net: &Network| {
+            let out = net.forward(&Tensor::new(&[[0.5f32], [-0.5]], &Device::Cpu).unwrap()).unwrap();
+            out.to_vec1::<f32>().unwrap()
+        };
+        let weighted = at(&fit_with(Some((w.clone(), w.clone())), "w").unwrap().net);
+        let plain = at(&fit_with(None, "p").unwrap().net);
+        for (&v, want) in weighted.iter().zip([10.0 / 11.0, 10.0 / 11.0]) {
+            assert!((v - want).abs() < 0.03, "weighted fit {weighted:?}, want {want}");
+        }
+        for &v in &plain {
+            assert!((v - 0.5).abs() < 0.03, "plain fit {plain:?}");
+        }
+        assert!(fit_with(Some((w[1..].to_vec(), w.clone())), "bad").is_err());
     }
 }

@@ -59,10 +59,12 @@ struct Sums {
     a: Vec<f64>,
 }
 
+#[allow(clippy::too_many_arguments)]
 fn sums(
     h: &[f32],
     d: usize,
     y: &[f32],
+    w: &[f32],
     theta: &[f64],
     den_theta: &[f64],
     t: (f32, f32, f32, f32),
@@ -77,7 +79,8 @@ fn sums(
     let parts: Vec<Sums> = h
         .par_chunks(CHUNK * d)
         .zip(y.par_chunks(CHUNK))
-        .map(|(hc, yc)| {
+        .zip(w.par_chunks(CHUNK))
+        .map(|((hc, yc), wc)| {
             let mut s = Sums {
                 loss: 0.0,
                 sv: 0.0,
@@ -86,10 +89,12 @@ fn sums(
                 a: vec![0.0; if with_system { p * p } else { 0 }],
             };
             let mut j = vec![0.0f64; p];
-            for (row, &yi) in hc.chunks_exact(d).zip(yc) {
+            for ((row, &yi), &wi) in hc.chunks_exact(d).zip(yc).zip(wc) {
                 let v = value(theta, row);
                 let vd = value(den_theta, row);
-                let den = (vd * vd + eps).powf(0.5 * power);
+                // The row's weight divides its denominator: loss, gradient and system
+                // all scale by it.
+                let den = (vd * vd + eps).powf(0.5 * power) / wi as f64;
                 let yi = yi as f64;
                 s.loss += (v - yi) * (v - yi) / den;
                 s.sv += v;
@@ -165,16 +170,27 @@ fn cholesky_solve(a: &[f64], b: &[f64]) -> Option<Vec<f64>> {
 
 /// Refits the output layer of `net` on rows `x` (standardized, `n_f` per row) and
 /// linear targets `y` under `loss`, a [`Loss::RelativeL2`] (output transform
-/// v = exp(out std + mean) - 1): at most `iterations` damped Gauss-Newton steps, each
-/// taken only if it lowers the loss.
+/// v = exp(out std + mean) - 1), each row's term times its weight in `w` where given
+/// (the fit's [`crate::nn::fit::FitData::weights`]): at most `iterations` damped
+/// Gauss-Newton steps, each taken only if it lowers the loss.
 pub fn refit_output_layer(
     net: &mut Network,
     x: &[f32],
     y: &[f32],
+    w: Option<&[f32]>,
     n_f: usize,
     loss: Loss,
     iterations: usize,
 ) -> Result<RefitReport, TrainError> {
+    let ones;
+    let row_w = match w {
+        Some(w) if w.len() == y.len() => w,
+        Some(w) => return Err(TrainError::Data(format!("{} weights for {} rows", w.len(), y.len()))),
+        None => {
+            ones = vec![1.0f32; y.len()];
+            &ones[..]
+        }
+    };
     let Loss::RelativeL2 { mean, std, eps, power } = loss else {
         return Err(TrainError::Data("the output layer's refit needs the relative L2 loss".into()));
     };
@@ -185,12 +201,12 @@ pub fn refit_output_layer(
     let mut theta: Vec<f64> = w.as_tensor().flatten_all()?.to_vec1::<f32>()?.iter().map(|v| *v as f64).collect();
     theta.push(b.as_tensor().to_vec1::<f32>()?[0] as f64);
     let n = y.len() as f64;
-    let start = sums(&h, d, y, &theta, &theta, transform, false);
+    let start = sums(&h, d, y, row_w, &theta, &theta, transform, false);
     let mut report =
         RefitReport { loss_before: start.loss / n, bias_before: start.sv / start.sy - 1.0, ..Default::default() };
     let mut lambda = 1e-3;
     for _ in 0..iterations {
-        let s = sums(&h, d, y, &theta, &theta, transform, true);
+        let s = sums(&h, d, y, row_w, &theta, &theta, transform, true);
         let p = theta.len();
         let mut accepted = false;
         for _ in 0..8 {
@@ -205,7 +221,7 @@ pub fn refit_output_layer(
             };
             let trial: Vec<f64> = theta.iter().zip(&step).map(|(t, s)| t + s).collect();
             // The loss with the denominators where this iteration holds them.
-            let t = sums(&h, d, y, &trial, &theta, transform, false);
+            let t = sums(&h, d, y, row_w, &trial, &theta, transform, false);
             if t.loss.is_finite() && t.loss < s.loss {
                 theta = trial;
                 lambda = (lambda * 0.3).max(1e-9);
@@ -219,7 +235,7 @@ pub fn refit_output_layer(
             break;
         }
     }
-    let end = sums(&h, d, y, &theta, &theta, transform, false);
+    let end = sums(&h, d, y, row_w, &theta, &theta, transform, false);
     report.loss_after = end.loss / n;
     report.bias_after = end.sv / end.sy - 1.0;
     let dev = Device::Cpu;
@@ -277,7 +293,7 @@ mod tests {
             pool.install(|| {
                 let mut net = perturbed(&truth);
                 let loss = Loss::RelativeL2 { mean: t.0, std: t.1, eps: t.2, power: t.3 };
-                let report = refit_output_layer(&mut net, &x, &y, n_f, loss, 20).unwrap();
+                let report = refit_output_layer(&mut net, &x, &y, None, n_f, loss, 20).unwrap();
                 let last = net.params.len() - 1;
                 let w = net.params[last].0.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
                 (report, w, net)
@@ -302,5 +318,52 @@ mod tests {
             100.0 * se
         );
         assert!(report.bias_before < -0.1, "the perturbation should start well below: {report:?}");
+    }
+
+    /// A row of weight 2 counts as two rows: the weighted refit of a data set reaches
+    /// the layer of the unweighted refit of the same set with those rows repeated.
+    #[test]
+    fn a_weight_counts_as_repeated_rows() {
+        let (n, n_f, t) = (2_000usize, 3usize, (0.5f32, 0.8f32, 2.5e-3f32, 1.0f32));
+        let dev = Device::Cpu;
+        let start = Network::glorot(&[n_f, 6, 1], Activation::Tanh, 9, &dev).unwrap();
+        let mut rng = Rng::new(12, 0, 0);
+        let x: Vec<f32> = (0..n * n_f).map(|_| 2.0 * rng.uniform() - 1.0).collect();
+        let y: Vec<f32> = x.chunks_exact(n_f).map(|r| (1.0 + r[0] - 0.5 * r[1] * r[2]).max(0.05) * 3.0).collect();
+        // Every third row weighs 2.
+        let w: Vec<f32> = (0..n).map(|i| if i % 3 == 0 { 2.0 } else { 1.0 }).collect();
+        let (mut xr, mut yr) = (x.clone(), y.clone());
+        for i in (0..n).step_by(3) {
+            xr.extend_from_slice(&x[i * n_f..(i + 1) * n_f]);
+            yr.push(y[i]);
+        }
+        let copy = |net: &Network| Network {
+            params: net
+                .params
+                .iter()
+                .map(|(w, b)| (Var::from_tensor(w.as_tensor()).unwrap(), Var::from_tensor(b.as_tensor()).unwrap()))
+                .collect(),
+            activation: net.activation,
+        };
+        let loss = Loss::RelativeL2 { mean: t.0, std: t.1, eps: t.2, power: t.3 };
+        let layer = |net: &Network| {
+            let last = net.params.len() - 1;
+            let mut v = net.params[last].0.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            v.extend(net.params[last].1.as_tensor().to_vec1::<f32>().unwrap());
+            v
+        };
+        let (mut weighted, mut repeated, mut plain) = (copy(&start), copy(&start), copy(&start));
+        let rw = refit_output_layer(&mut weighted, &x, &y, Some(&w), n_f, loss, 10).unwrap();
+        let rr = refit_output_layer(&mut repeated, &xr, &yr, None, n_f, loss, 10).unwrap();
+        refit_output_layer(&mut plain, &x, &y, None, n_f, loss, 10).unwrap();
+        let (a, b, c) = (layer(&weighted), layer(&repeated), layer(&plain));
+        let diff = |u: &[f32], v: &[f32]| u.iter().zip(v).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+        assert!(diff(&a, &b) < 1e-4, "weighted {a:?} against repeated {b:?}");
+        assert!(diff(&a, &c) > 1e-3, "the weights changed nothing: {a:?}");
+        // The losses are per row of the weighted set: the repeated set's sum over its
+        // rows, over the weighted set's count.
+        let ratio = yr.len() as f64 / y.len() as f64;
+        assert!((rw.loss_after - rr.loss_after * ratio).abs() < 1e-6 * rw.loss_after.max(1.0), "{rw:?} {rr:?}");
+        assert!(refit_output_layer(&mut copy(&start), &x, &y, Some(&w[1..]), n_f, loss, 1).is_err());
     }
 }
