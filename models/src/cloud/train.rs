@@ -18,7 +18,7 @@ use crate::nn::fit::{
 };
 use crate::nn::mlp::Mlp;
 use crate::nn::optim::Optimizer;
-use crate::nn::refit::{RefitReport, refit_output_layer};
+use crate::nn::refit::{RefitReport, cholesky_solve, refit_output_layer};
 use engine::Rng;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -438,7 +438,7 @@ pub fn noise_weights(
             a[r * d + c] = a[c * d + r];
         }
     }
-    let beta = solve_spd(&mut a, &b, d)
+    let beta = cholesky_solve(&a, &b)
         .ok_or_else(|| TrainError::Data("--noise-weights: the noise model's normal equations are singular".into()))?;
     let predict = |x: &[f32], i: usize| -> f64 {
         x[i * n_in..(i + 1) * n_in].iter().zip(&beta).map(|(v, c)| *v as f64 * c).sum::<f64>() + beta[n_in]
@@ -487,44 +487,6 @@ pub fn noise_weights(
         pooled_gain: (s2 / k) * sw * sw / (k * sw2s2),
     };
     Ok((w_train, w_test, report))
-}
-
-/// Solves A x = b for a symmetric positive definite `a` (d x d, row-major, both
-/// triangles filled; overwritten by its Cholesky factor) by Cholesky; None when a
-/// pivot is not positive.
-fn solve_spd(a: &mut [f64], b: &[f64], d: usize) -> Option<Vec<f64>> {
-    for j in 0..d {
-        let mut s = a[j * d + j];
-        for k in 0..j {
-            s -= a[j * d + k] * a[j * d + k];
-        }
-        if !(s > 0.0) {
-            return None;
-        }
-        let l = s.sqrt();
-        a[j * d + j] = l;
-        for i in j + 1..d {
-            let mut s = a[i * d + j];
-            for k in 0..j {
-                s -= a[i * d + k] * a[j * d + k];
-            }
-            a[i * d + j] = s / l;
-        }
-    }
-    let mut y = b.to_vec();
-    for i in 0..d {
-        for k in 0..i {
-            y[i] -= a[i * d + k] * y[k];
-        }
-        y[i] /= a[i * d + i];
-    }
-    for i in (0..d).rev() {
-        for k in i + 1..d {
-            y[i] -= a[k * d + i] * y[k];
-        }
-        y[i] /= a[i * d + i];
-    }
-    Some(y)
 }
 
 /// The final report.

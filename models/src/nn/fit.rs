@@ -436,10 +436,7 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
     }
     let x_test = Tensor::from_slice(&data.x_test, (data.y_test.len(), n_f), &dev)?;
     let y_test = Tensor::from_slice(&data.y_test, data.y_test.len(), &dev)?;
-    let w_test = match &data.weights {
-        Some((_, we)) => Some(Tensor::from_slice(we, we.len(), &dev)?),
-        None => None,
-    };
+    let w_test = data.weights.as_ref().map(|(_, we)| Tensor::from_slice(we, we.len(), &dev)).transpose()?;
     let test_mse = |net: &Network| -> candle_core::Result<f64> {
         let p = net.forward(&x_test)?;
         data.loss.eval(&p, &y_test, w_test.as_ref())?.to_scalar::<f32>().map(|v| v as f64)
@@ -474,10 +471,7 @@ pub fn fit<C: Clone + PartialEq + Serialize + DeserializeOwned>(
             }
             let x = Tensor::from_slice(&xb, (idx.len(), n_f), &dev)?;
             let y = Tensor::from_slice(&yb, idx.len(), &dev)?;
-            let w = match data.weights {
-                Some(_) => Some(Tensor::from_slice(&wb, idx.len(), &dev)?),
-                None => None,
-            };
+            let w = data.weights.as_ref().map(|_| Tensor::from_slice(&wb, idx.len(), &dev)).transpose()?;
             let loss = data.loss.eval(&net.forward(&x)?, &y, w.as_ref())?;
             let grads = loss.backward()?;
             opt.apply(cfg.optimizer, lr, &vars, &grads)?;

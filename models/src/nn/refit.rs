@@ -140,8 +140,9 @@ fn sums(
     out
 }
 
-/// Solves the symmetric positive definite system a x = b (Cholesky); None if it is not.
-fn cholesky_solve(a: &[f64], b: &[f64]) -> Option<Vec<f64>> {
+/// Solves the symmetric positive definite system a x = b (Cholesky; `a` row-major
+/// with its lower triangle filled); None if it is not.
+pub(crate) fn cholesky_solve(a: &[f64], b: &[f64]) -> Option<Vec<f64>> {
     let n = b.len();
     let mut l = vec![0.0f64; n * n];
     for i in 0..n {
