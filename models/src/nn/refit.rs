@@ -254,6 +254,18 @@ mod tests {
     use crate::nn::dense::Activation;
     use engine::Rng;
 
+    /// A copy of `net` with variables of its own, its output layer's weight and bias
+    /// passed through `last`.
+    fn copy_with(net: &Network, last: impl Fn(&Tensor, &Tensor) -> (Tensor, Tensor)) -> Network {
+        let n = net.params.len() - 1;
+        let var = |t: &Tensor| Var::from_tensor(t).unwrap();
+        let mut params: Vec<(Var, Var)> =
+            net.params[..n].iter().map(|(w, b)| (var(w.as_tensor()), var(b.as_tensor()))).collect();
+        let (w, b) = last(net.params[n].0.as_tensor(), net.params[n].1.as_tensor());
+        params.push((var(&w), var(&b)));
+        Network { params, activation: net.activation }
+    }
+
     /// Data from a known output layer with heavy-tailed, mean-one multiplicative noise
     /// (log-normal, sigma 1.5: a relative standard deviation of 2.9 per target, most
     /// of the mean in the upper tail): refitted from a perturbed layer, the model's
@@ -278,17 +290,7 @@ mod tests {
                 (v * (sigma * z - 0.5 * sigma * sigma).exp()) as f32
             })
             .collect();
-        let perturbed = |net: &Network| {
-            let last = net.params.len() - 1;
-            let w = (net.params[last].0.as_tensor() * 0.7).unwrap();
-            let b = (net.params[last].1.as_tensor() - 0.4).unwrap();
-            let mut params: Vec<(Var, Var)> = net.params[..last]
-                .iter()
-                .map(|(w, b)| (Var::from_tensor(w.as_tensor()).unwrap(), Var::from_tensor(b.as_tensor()).unwrap()))
-                .collect();
-            params.push((Var::from_tensor(&w).unwrap(), Var::from_tensor(&b).unwrap()));
-            Network { params, activation: net.activation }
-        };
+        let perturbed = |net: &Network| copy_with(net, |w, b| ((w * 0.7).unwrap(), (b - 0.4).unwrap()));
         let run = |threads: usize| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| {
@@ -338,14 +340,7 @@ mod tests {
             xr.extend_from_slice(&x[i * n_f..(i + 1) * n_f]);
             yr.push(y[i]);
         }
-        let copy = |net: &Network| Network {
-            params: net
-                .params
-                .iter()
-                .map(|(w, b)| (Var::from_tensor(w.as_tensor()).unwrap(), Var::from_tensor(b.as_tensor()).unwrap()))
-                .collect(),
-            activation: net.activation,
-        };
+        let copy = |net: &Network| copy_with(net, |w, b| (w.clone(), b.clone()));
         let loss = Loss::RelativeL2 { mean: t.0, std: t.1, eps: t.2, power: t.3 };
         let layer = |net: &Network| {
             let last = net.params.len() - 1;
