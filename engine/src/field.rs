@@ -131,8 +131,12 @@ pub fn optical_depth_sweep(
     Some(tau)
 }
 
-/// A node's value as a function of its position (a lazily filled lattice's source).
-pub type NodeSource = Arc<dyn Fn(Vec3) -> f32 + Send + Sync>;
+/// A lazily filled lattice's source: the values of the nodes at `positions` into
+/// `values` (the same length), each a function of its position alone. It is called
+/// with the nodes of one brick at a time, so that a source that evaluates several
+/// points faster together (a network, several rows per pass over its weights) gets
+/// them together, and neighbouring nodes' feature lookups meet in the cache.
+pub type NodeSource = Arc<dyn Fn(&[Vec3], &mut [f32]) + Send + Sync>;
 
 /// Bits of a node not evaluated yet (a NaN no source returns: sources' values are
 /// stored as they come, and a NaN from one is stored as 0).
@@ -142,20 +146,27 @@ const UNSET: u32 = u32::MAX;
 const LATTICE_BRICK_LOG2: u32 = 2;
 const LATTICE_BRICK_NODES: usize = 1 << (3 * LATTICE_BRICK_LOG2);
 
+/// Edge of the block of nodes a lazy lattice evaluates at once, in nodes (2^3 nodes,
+/// the corners of a cell's worth): large enough for the source to evaluate its
+/// points together (a network several rows per pass over its weights, neighbouring
+/// feature lookups in the cache), small enough to waste few nodes where the lookups
+/// read a thin shell (the preview's camera-facing skin).
+const LAZY_FILL_LOG2: u32 = 1;
+
 /// A brick of nodes: f32 bits each, UNSET until evaluated.
 type LatticeBrick = Box<[AtomicU32; LATTICE_BRICK_NODES]>;
 
 /// One value per node of a lattice over a box, read by trilinear interpolation.
 ///
 /// A lattice is either filled up front ([`ScalarLattice::new`]) or lazily
-/// ([`ScalarLattice::lazy`]): a node is evaluated by the source the first time a
-/// lookup reads it and kept. Where the lookups concentrate (the camera-facing shell of
-/// a dense cloud, for the preview) a fine lattice then costs the nodes that are read,
-/// not all of them, in time and in memory: the nodes are stored in bricks of 4^3,
-/// each allocated when a lookup first reads one of its nodes. Two threads reading a
-/// new node at once may both evaluate it; the source is a function of the position,
-/// so they store the same bits, and the values read do not depend on the thread count
-/// or the order of the lookups.
+/// ([`ScalarLattice::lazy`]): the nodes are stored in bricks of 4^3, each allocated
+/// when a lookup first reads one of its nodes, and the first lookup that reads a node
+/// has the source evaluate the block of 2^3 nodes around it at once, which are kept.
+/// Where the lookups concentrate (the camera-facing shell of a dense cloud, for the
+/// preview) a fine lattice then costs about the nodes that are read, not all of them,
+/// in time and in memory. Two threads reading a new node at once may both evaluate
+/// it; the source is a function of the position, so they store the same bits, and
+/// the values read do not depend on the thread count or the order of the lookups.
 pub struct ScalarLattice {
     n: UVec3,
     origin: Vec3,
@@ -166,6 +177,9 @@ pub struct ScalarLattice {
     /// The bricks, x fastest; within one, node x + 4 (y + 4 z).
     bricks: Vec<OnceLock<LatticeBrick>>,
     source: Option<NodeSource>,
+    /// A lazy lattice evaluates the blocks of 2^fill_log2 nodes per axis that hold a
+    /// node read, in one call of the source each.
+    fill_log2: u32,
 }
 
 impl ScalarLattice {
@@ -187,7 +201,7 @@ impl ScalarLattice {
     }
 
     /// `n` nodes per axis (each >= 2) from `origin`, `spacing` apart, each evaluated by
-    /// `source` at its position when a lookup first reads it.
+    /// `source` at its position when a lookup first reads it or a node of its block.
     pub fn lazy(n: UVec3, origin: Vec3, spacing: Vec3, source: NodeSource) -> Self {
         assert!(n.min_element() >= 2, "a lattice of {n} nodes");
         Self::empty(n, origin, spacing, Some(source))
@@ -197,7 +211,16 @@ impl ScalarLattice {
         let bricks_n = (n + (1 << LATTICE_BRICK_LOG2) - 1) >> LATTICE_BRICK_LOG2;
         let bricks =
             (0..bricks_n.x as usize * bricks_n.y as usize * bricks_n.z as usize).map(|_| OnceLock::new()).collect();
-        ScalarLattice { n, origin, spacing, inv_spacing: spacing.recip(), bricks_n, bricks, source }
+        ScalarLattice {
+            n,
+            origin,
+            spacing,
+            inv_spacing: spacing.recip(),
+            bricks_n,
+            bricks,
+            source,
+            fill_log2: LAZY_FILL_LOG2,
+        }
     }
 
     /// Nodes per axis.
@@ -226,9 +249,13 @@ impl ScalarLattice {
     /// evaluated by `source` now, in parallel (the result does not depend on the
     /// thread count).
     pub fn filled(n: UVec3, origin: Vec3, spacing: Vec3, source: NodeSource) -> Self {
-        let l = Self::lazy(n, origin, spacing, source);
-        (0..n.x * n.y * n.z).into_par_iter().for_each(|i| {
-            l.node(i % n.x, (i / n.x) % n.y, i / (n.x * n.y));
+        // Every node is needed: a brick per call of the source.
+        let l = ScalarLattice { fill_log2: LATTICE_BRICK_LOG2, ..Self::lazy(n, origin, spacing, source) };
+        let bn = l.bricks_n;
+        (0..bn.x * bn.y * bn.z).into_par_iter().for_each(|b| {
+            let m = (1 << LATTICE_BRICK_LOG2) as u32;
+            // Its first node: evaluates the whole brick.
+            l.node((b % bn.x) * m, (b / bn.x) % bn.y * m, b / (bn.x * bn.y) * m);
         });
         ScalarLattice { source: None, ..l }
     }
@@ -244,7 +271,7 @@ impl ScalarLattice {
         )
     }
 
-    /// The value of node (x, y, z), evaluated now if it was not.
+    /// The value of node (x, y, z), its fill block evaluated now if it was not.
     #[inline]
     fn node(&self, x: u32, y: u32, z: u32) -> f32 {
         let (b, i) = self.brick_of(x, y, z);
@@ -259,10 +286,36 @@ impl ScalarLattice {
             return f32::from_bits(bits);
         }
         let Some(source) = &self.source else { return 0.0 };
-        let v = source(self.origin + UVec3::new(x, y, z).as_vec3() * self.spacing);
-        let v = if v.is_nan() { 0.0 } else { v };
-        brick[i].store(v.to_bits(), Ordering::Relaxed);
-        v
+        self.fill_block((x, y, z), self.fill_log2, brick, source);
+        f32::from_bits(brick[i].load(Ordering::Relaxed))
+    }
+
+    /// Evaluates the nodes of the block of 2^`log2` nodes per axis (within one brick)
+    /// around node (x, y, z) that lie in the lattice and are not set yet, in one call
+    /// of the source (a NaN stored as 0).
+    #[cold]
+    fn fill_block(&self, (x, y, z): (u32, u32, u32), log2: u32, brick: &LatticeBrick, source: &NodeSource) {
+        debug_assert!(log2 <= LATTICE_BRICK_LOG2);
+        let m = (1u32 << log2) - 1;
+        let corner = UVec3::new(x & !m, y & !m, z & !m);
+        let mut positions = [Vec3::ZERO; LATTICE_BRICK_NODES];
+        let mut slots = [0usize; LATTICE_BRICK_NODES];
+        let mut count = 0;
+        for j in 0..1u32 << (3 * log2) {
+            let g = corner + UVec3::new(j & m, (j >> log2) & m, j >> (2 * log2));
+            let (_, i) = self.brick_of(g.x, g.y, g.z);
+            if g.cmplt(self.n).all() && brick[i].load(Ordering::Relaxed) == UNSET {
+                positions[count] = self.origin + g.as_vec3() * self.spacing;
+                slots[count] = i;
+                count += 1;
+            }
+        }
+        let mut values = [0.0f32; LATTICE_BRICK_NODES];
+        source(&positions[..count], &mut values[..count]);
+        for (&i, &v) in slots[..count].iter().zip(&values[..count]) {
+            let v = if v.is_nan() { 0.0 } else { v };
+            brick[i].store(v.to_bits(), Ordering::Relaxed);
+        }
     }
 
     /// Trilinear value at `x` (positions outside the lattice are clamped to it); the
@@ -724,9 +777,10 @@ mod tests {
     }
 
     /// A lazy lattice reads the same values as one filled up front, bit for bit, with
-    /// lookups from any number of threads in any order; it evaluates only the nodes
-    /// its lookups read (the 8 corners of each cell touched), each once when read from
-    /// one thread, and stores a source's NaN as 0.
+    /// lookups from any number of threads in any order; it evaluates only the blocks of
+    /// 2^3 nodes its lookups read (those holding the 8 corners of each cell touched),
+    /// each in one call of the source when read from one thread, and stores a source's
+    /// NaN as 0. A lattice filled up front calls its source once per brick.
     #[test]
     fn lazy_lattice_equals_the_filled_one_and_evaluates_what_it_reads() {
         let n = UVec3::new(9, 7, 8);
@@ -734,18 +788,23 @@ mod tests {
         let f = |p: Vec3| (3.0 * p.x).sin() * p.y + (p.z * p.x).cos();
         let node = |i: u32| origin + UVec3::new(i % n.x, (i / n.x) % n.y, i / (n.x * n.y)).as_vec3() * spacing;
         let filled = ScalarLattice::new(n, origin, spacing, (0..n.x * n.y * n.z).map(|i| f(node(i))).collect());
-        let calls = Arc::new(std::sync::atomic::AtomicUsize::new(0));
-        let lazy = |calls: Arc<std::sync::atomic::AtomicUsize>| {
+        // (source calls, nodes evaluated)
+        type Counts = Arc<[std::sync::atomic::AtomicUsize; 2]>;
+        let lazy = |counts: Counts| {
             ScalarLattice::lazy(
                 n,
                 origin,
                 spacing,
-                Arc::new(move |p| {
-                    calls.fetch_add(1, Ordering::Relaxed);
-                    f(p)
+                Arc::new(move |ps: &[Vec3], out: &mut [f32]| {
+                    counts[0].fetch_add(1, Ordering::Relaxed);
+                    counts[1].fetch_add(ps.len(), Ordering::Relaxed);
+                    for (o, p) in out.iter_mut().zip(ps) {
+                        *o = f(*p);
+                    }
                 }),
             )
         };
+        let counts = || Counts::new(Default::default());
         let mut rng = crate::rng::Rng::new(5, 0, 0);
         // Points in the lower half of the box along x only.
         let points: Vec<Vec3> = (0..2000)
@@ -754,29 +813,41 @@ mod tests {
                 origin + u * (n - 1).as_vec3() * spacing
             })
             .collect();
+        let calls = counts();
         let one = lazy(calls.clone());
         assert_eq!(one.evaluated(), 0);
         for p in &points {
             assert_eq!(one.lookup(*p).to_bits(), filled.lookup(*p).to_bits(), "{p}");
         }
-        // Cells with x index 0 .. 3 are read: nodes with x index 0 .. 4, and no more.
-        let read = 5 * n.y as usize * n.z as usize;
-        assert!(one.evaluated() <= read && one.evaluated() > read / 2, "{} of {read}", one.evaluated());
-        assert_eq!(calls.load(Ordering::Relaxed), one.evaluated(), "a node evaluated twice from one thread");
+        // Cells with x index 0 .. 3 are read: nodes with x index 0 .. 4, in the fill
+        // blocks of 2^3 nodes of x index 0 .. 5, whose nodes inside the lattice are
+        // 6 x 7 x 8, 3 x 4 x 4 blocks, each in one call.
+        let read = 6 * n.y as usize * n.z as usize;
+        assert_eq!(one.evaluated(), read);
+        assert_eq!(calls[0].load(Ordering::Relaxed), 3 * 4 * 4, "a block evaluated in more than one call");
+        assert_eq!(calls[1].load(Ordering::Relaxed), read, "a node evaluated twice from one thread");
         // Only the bricks read are held: of 3 x 2 x 2 bricks of 4^3 nodes, the 2 x 2 x 2
         // that hold nodes 0 .. 4 along x; the index counts all 12.
         let index = 12 * std::mem::size_of::<OnceLock<LatticeBrick>>();
         assert_eq!(one.memory_bytes(), index + 8 * 4 * LATTICE_BRICK_NODES);
         assert_eq!(filled.memory_bytes(), index + 12 * 4 * LATTICE_BRICK_NODES);
-        assert_eq!(ScalarLattice::lazy(n, origin, spacing, Arc::new(|_| 1.0)).memory_bytes(), index);
+        assert_eq!(ScalarLattice::lazy(n, origin, spacing, Arc::new(|_, out| out.fill(1.0))).memory_bytes(), index);
         // From 3 threads, in reverse order: the same values.
-        let three = lazy(Arc::new(std::sync::atomic::AtomicUsize::new(0)));
+        let three = lazy(counts());
         let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
         let got: Vec<u32> = pool.install(|| points.par_iter().rev().map(|p| three.lookup(*p).to_bits()).collect());
         let want: Vec<u32> = points.iter().rev().map(|p| filled.lookup(*p).to_bits()).collect();
         assert_eq!(got, want);
+        // Filled up front: the same values, one call per brick.
+        let calls = counts();
+        let eager = ScalarLattice::filled(n, origin, spacing, lazy(calls.clone()).source.clone().unwrap());
+        assert_eq!(calls[0].load(Ordering::Relaxed), 12);
+        assert_eq!(calls[1].load(Ordering::Relaxed), (n.x * n.y * n.z) as usize);
+        for p in &points {
+            assert_eq!(eager.lookup(*p).to_bits(), filled.lookup(*p).to_bits(), "{p}");
+        }
         // A NaN from the source is stored as 0.
-        let nan = ScalarLattice::lazy(UVec3::splat(2), Vec3::ZERO, Vec3::ONE, Arc::new(|_| f32::NAN));
+        let nan = ScalarLattice::lazy(UVec3::splat(2), Vec3::ZERO, Vec3::ONE, Arc::new(|_, out| out.fill(f32::NAN)));
         assert_eq!(nan.lookup(Vec3::splat(0.5)), 0.0);
     }
 }

@@ -23,6 +23,18 @@ use glam::Vec3;
 pub trait InScatterPredictor: Send + Sync {
     fn predict(&self, medium: &Medium, sun: &Sun, x: Vec3, omega: Vec3) -> f32;
 
+    /// [`InScatterPredictor::predict`] at `xs[i]` toward `omegas[i]` into `out[i]`,
+    /// each value the same bits as a call of `predict` would give (a lattice filled a
+    /// brick at a time reads the same values as one filled node by node). A model
+    /// whose network evaluates several rows per pass over its weights answers a batch
+    /// faster than one query at a time; the default asks `predict` for each.
+    fn predict_many(&self, medium: &Medium, sun: &Sun, xs: &[Vec3], omegas: &[Vec3], out: &mut [f32]) {
+        assert!(xs.len() == omegas.len() && xs.len() == out.len(), "one direction and one output per point");
+        for ((o, &x), &omega) in out.iter_mut().zip(xs).zip(omegas) {
+            *o = self.predict(medium, sun, x, omega);
+        }
+    }
+
     /// Whether `predict` includes single scattering at `x` (the thesis's target, eq.
     /// 5.5). A predictor that answers only the multiple-scattering part (orders >= 2
     /// counted from `x`) returns false, and the integrator then path traces single

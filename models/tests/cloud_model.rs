@@ -227,6 +227,18 @@ fn training_resumes_and_the_model_round_trips() {
         assert!(v.is_finite() && v >= 0.0);
         assert_eq!(v, loaded.predict_features(&feat, &mut s1));
     }
+    // A batch (37 points: two full batches of the network's rows and a tail of 5, and
+    // a lone point) gives each point the bits of a single prediction.
+    let queries: Vec<_> =
+        (0..37).map(|_| models::cloud::datagen::camera_path_query(medium, 1, None, &mut rng)).collect();
+    let (xs, ws): (Vec<_>, Vec<_>) = queries.iter().copied().unzip();
+    for n in [37, 1] {
+        let mut many = vec![f32::NAN; n];
+        bound.predict_many(medium, &sun, &xs[..n], &ws[..n], &mut many);
+        for (i, &(x, wo)) in queries[..n].iter().enumerate() {
+            assert_eq!(many[i].to_bits(), bound.predict(medium, &sun, x, wo).to_bits(), "point {i} of {n}");
+        }
+    }
 }
 
 /// A network of the stored features alone (the models before the derived coupling)

@@ -109,6 +109,9 @@ pub const MAX_STEP_TAU: f32 = 0.5;
 /// Steps a march looks up together ([`Preview::trace_with_offset`]).
 const MARCH_BATCH: usize = 8;
 
+/// Nodes a lattice's source hands the predictor at once (a lattice brick's).
+const MAX_SOURCE_NODES: usize = 64;
+
 /// Where the preview's orders >= 2 come from.
 #[derive(Clone, Debug)]
 pub enum MultipleScattering {
@@ -394,19 +397,35 @@ impl Preview {
         let model_bytes = predictor.memory_bytes();
         let source = move |spacing: Vec3| -> NodeSource {
             let (medium, predictor, single) = (medium.clone(), predictor.clone(), single.clone());
-            Arc::new(move |p: Vec3| {
+            Arc::new(move |ps: &[Vec3], out: &mut [f32]| {
                 // A node is read wherever its lattice cells are: it is needed unless
-                // the medium is empty across all of them.
-                if medium.majorant().max_in(Bounds3::new(p - spacing, p + spacing)) <= 0.0 {
-                    return 0.0;
+                // the medium is empty across all of them. The needed ones go to the
+                // predictor together.
+                let mut xs = [Vec3::ZERO; MAX_SOURCE_NODES];
+                let mut omegas = [Vec3::ZERO; MAX_SOURCE_NODES];
+                let mut slots = [0usize; MAX_SOURCE_NODES];
+                let mut li = [0.0f32; MAX_SOURCE_NODES];
+                for (pc, oc) in ps.chunks(MAX_SOURCE_NODES).zip(out.chunks_mut(MAX_SOURCE_NODES)) {
+                    oc.fill(0.0);
+                    let mut m = 0;
+                    for (j, &p) in pc.iter().enumerate() {
+                        if medium.majorant().max_in(Bounds3::new(p - spacing, p + spacing)) <= 0.0 {
+                            continue;
+                        }
+                        let Some(omega) = (camera - p).try_normalize() else { continue };
+                        (xs[m], omegas[m], slots[m]) = (p, omega, j);
+                        m += 1;
+                    }
+                    predictor.predict_many(&medium, &light, &xs[..m], &omegas[..m], &mut li[..m]);
+                    for k in 0..m {
+                        let (p, omega) = (xs[k], omegas[k]);
+                        let ms = match &single {
+                            Some(sun) => li[k] - medium.phase().eval(omega, sun.to_sun()) * sun.at(p),
+                            None => li[k],
+                        };
+                        oc[slots[k]] = if ms.is_finite() { ms.max(0.0) } else { 0.0 };
+                    }
                 }
-                let Some(omega) = (camera - p).try_normalize() else { return 0.0 };
-                let li = predictor.predict(&medium, &light, p, omega);
-                let ms = match &single {
-                    Some(sun) => li - medium.phase().eval(omega, sun.to_sun()) * sun.at(p),
-                    None => li,
-                };
-                if ms.is_finite() { ms.max(0.0) } else { 0.0 }
             })
         };
         if n.x * n.y * n.z <= EAGER_LATTICE_NODES {

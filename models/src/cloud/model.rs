@@ -11,7 +11,7 @@
 use super::features::{CloudField, DerivedInputs, N_FEATURES, feature_names};
 use crate::global::model::{ModelError, read_model_files, shipped_once};
 use crate::nn::dense::Activation;
-use crate::nn::mlp::{Mlp, Scratch};
+use crate::nn::mlp::{BATCH_ROWS, Mlp, Scratch};
 use engine::field::SunTransmittance;
 use engine::{Cancel, DensityGrid, InScatterPredictor, Medium, Sun};
 use glam::Vec3;
@@ -162,6 +162,27 @@ impl CloudModel {
     pub fn predict_features(&self, raw: &[f32], scratch: &mut Scratch) -> f32 {
         self.untransform(self.output(raw, scratch))
     }
+
+    /// L_ms for raw feature rows `stride` apart (each row's first
+    /// [`CloudModel::inputs`] values are read), one per output: the same bits as
+    /// [`CloudModel::predict_features`] on each row, the network run on several rows
+    /// per pass ([`Mlp::forward_batch`]).
+    pub fn predict_features_many(&self, raw: &[f32], stride: usize, out: &mut [f32], scratch: &mut Scratch) {
+        let n = self.inputs();
+        assert!(stride >= n && raw.len() >= out.len().saturating_sub(1) * stride + n, "feature rows");
+        let mut x = std::mem::take(&mut scratch.batch);
+        x.resize(out.len() * n, 0.0);
+        for (r, row) in x.chunks_exact_mut(n).enumerate() {
+            for (k, (xk, v)) in row.iter_mut().zip(&raw[r * stride..r * stride + n]).enumerate() {
+                *xk = (v - self.sidecar.feature_mean[k]) * self.inv_std[k];
+            }
+        }
+        self.mlp.forward_batch(&x, out, scratch);
+        for o in out.iter_mut() {
+            *o = self.untransform(*o);
+        }
+        scratch.batch = x;
+    }
 }
 
 /// The cloud-aware model bound to one cloud and one sun: the density pyramid and the
@@ -249,6 +270,25 @@ impl InScatterPredictor for BoundCloudModel {
         let mut feat = [0.0f32; N_FEATURES];
         self.field.features(medium.albedo(), medium.phase().mean_cosine(), x, omega, &mut feat);
         SCRATCH.with(|s| self.model.predict_features(&feat, &mut s.borrow_mut()))
+    }
+
+    /// The features of up to [`BATCH_ROWS`] points at a time, then the network on all
+    /// of them in one batched pass: the same bits as `predict` on each point.
+    fn predict_many(&self, medium: &Medium, sun: &Sun, xs: &[Vec3], omegas: &[Vec3], out: &mut [f32]) {
+        assert!(xs.len() == omegas.len() && xs.len() == out.len(), "one direction and one output per point");
+        if !self.matches(medium, sun) {
+            debug_assert!(false, "BoundCloudModel asked about a medium or sun it was not built for");
+            out.fill(0.0);
+            return;
+        }
+        let (albedo, g) = (medium.albedo(), medium.phase().mean_cosine());
+        let mut feat = [0.0f32; BATCH_ROWS * N_FEATURES];
+        for ((xc, wc), oc) in xs.chunks(BATCH_ROWS).zip(omegas.chunks(BATCH_ROWS)).zip(out.chunks_mut(BATCH_ROWS)) {
+            for ((&x, &omega), row) in xc.iter().zip(wc).zip(feat.chunks_exact_mut(N_FEATURES)) {
+                self.field.features(albedo, g, x, omega, row);
+            }
+            SCRATCH.with(|s| self.model.predict_features_many(&feat, N_FEATURES, oc, &mut s.borrow_mut()));
+        }
     }
 
     fn predicts_single_scattering(&self) -> bool {

@@ -294,6 +294,31 @@ impl Kernel {
             _ => layer_forward(layer, x, y, act),
         }
     }
+
+    /// `rows` rows through one layer (row r's input at xs[r * ws ..], its output at
+    /// ys[r * ws ..], ws at least the layer's stride and inputs): several rows per
+    /// loaded weight vector where the CPU has AVX2 + FMA, else row by row; the same
+    /// bits as [`Kernel::layer_forward`] on each row either way.
+    #[inline]
+    pub(crate) fn layer_forward_rows(
+        self,
+        layer: &Dense,
+        xs: &[f32],
+        ys: &mut [f32],
+        rows: usize,
+        ws: usize,
+        act: Option<Activation>,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if self != Kernel::Portable && Kernel::Avx2.available() {
+            // SAFETY: the CPU has AVX2 and FMA (checked above).
+            unsafe { avx2::layer_forward_rows(layer, xs, ys, rows, ws, act) };
+            return;
+        }
+        for r in 0..rows {
+            self.layer_forward(layer, &xs[r * ws..], &mut ys[r * ws..], act);
+        }
+    }
 }
 
 /// AVX-512F kernel for one row: the outputs in register blocks of up to 256 (sixteen

@@ -20,7 +20,16 @@ pub struct Scratch {
     b: Vec<f32>,
     /// The caller's input row (the global model standardizes its features here).
     pub(crate) features: Vec<f32>,
+    /// [`BATCH_ROWS`] rows of the batched pass, each `width` apart (sized on its
+    /// first use).
+    rows_a: Vec<f32>,
+    rows_b: Vec<f32>,
+    /// The caller's input rows for a batch (the cloud-aware model standardizes here).
+    pub(crate) batch: Vec<f32>,
 }
+
+/// Rows [`Mlp::forward_batch`] passes through the layers together.
+pub const BATCH_ROWS: usize = 16;
 
 /// The forward pass with one layer kernel.
 #[inline(always)]
@@ -81,7 +90,12 @@ impl Mlp {
 
     /// Scratch space for this network (allocate once per thread).
     pub fn scratch(&self) -> Scratch {
-        Scratch { a: vec![0.0; self.width], b: vec![0.0; self.width], features: vec![0.0; self.n_inputs()] }
+        Scratch {
+            a: vec![0.0; self.width],
+            b: vec![0.0; self.width],
+            features: vec![0.0; self.n_inputs()],
+            ..Default::default()
+        }
     }
 
     /// Sizes `scratch` for this network if it is too small.
@@ -138,11 +152,35 @@ impl Mlp {
             .collect()
     }
 
-    /// Batched entry point: `xs` holds rows of n_inputs values, one output per row.
+    /// Batched entry point: `xs` holds rows of n_inputs values, one output per row, the
+    /// same bits as [`Mlp::forward`] on each. [`BATCH_ROWS`] rows at a time pass
+    /// through each layer together, so a weight is loaded once for several rows (a
+    /// single row's pass is bound by streaming the weights). Allocation free once
+    /// `scratch` has served a batch of this network.
     pub fn forward_batch(&self, xs: &[f32], out: &mut [f32], scratch: &mut Scratch) {
         let n = self.n_inputs();
-        for (row, o) in xs.chunks_exact(n).zip(out.iter_mut()) {
-            *o = self.forward(row, scratch);
+        assert_eq!(xs.len(), n * out.len(), "rows and outputs");
+        let ws = self.width;
+        if scratch.rows_a.len() < BATCH_ROWS * ws {
+            scratch.rows_a = vec![0.0; BATCH_ROWS * ws];
+            scratch.rows_b = vec![0.0; BATCH_ROWS * ws];
         }
+        let kernel = Kernel::best();
+        let (mut cur, mut next) = (std::mem::take(&mut scratch.rows_a), std::mem::take(&mut scratch.rows_b));
+        let last = self.layers.len() - 1;
+        for (xg, og) in xs.chunks(BATCH_ROWS * n).zip(out.chunks_mut(BATCH_ROWS)) {
+            let rows = og.len();
+            for (r, x) in xg.chunks_exact(n).enumerate() {
+                cur[r * ws..r * ws + n].copy_from_slice(x);
+            }
+            for (l, layer) in self.layers.iter().enumerate() {
+                kernel.layer_forward_rows(layer, &cur, &mut next, rows, ws, (l < last).then_some(self.activation));
+                std::mem::swap(&mut cur, &mut next);
+            }
+            for (r, o) in og.iter_mut().enumerate() {
+                *o = cur[r * ws];
+            }
+        }
+        (scratch.rows_a, scratch.rows_b) = (cur, next);
     }
 }

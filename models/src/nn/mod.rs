@@ -10,5 +10,5 @@ pub mod optim;
 pub mod refit;
 
 pub use dense::{Activation, Kernel};
-pub use mlp::{Mlp, Scratch};
+pub use mlp::{BATCH_ROWS, Mlp, Scratch};
 pub use optim::Optimizer;

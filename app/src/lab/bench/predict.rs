@@ -408,6 +408,34 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
         if ordered.is_empty() {
             bail!("no camera ray of the benchmark view scatters");
         }
+        // What prediction at bounce 1 fills: the nodes of a lattice of the model's answers
+        // toward the camera (128 per axis over the cloud), in the lazy lattice's fill
+        // blocks of 2^3 nodes, the blocks the view's first vertices read, in the order
+        // they are first read.
+        let (lat_n, lat_spacing) = engine::field::lattice_over(&medium, 128);
+        let lat_origin = medium.grid().support_bounds().min;
+        let mut bricks: Vec<glam::UVec3> = vec![];
+        let mut seen = std::collections::HashSet::new();
+        for &(p, _) in &ordered {
+            let q = ((p - lat_origin) / lat_spacing).floor().as_uvec3().min(lat_n - glam::UVec3::splat(2));
+            if seen.insert(q / 2) {
+                bricks.push(q / 2);
+            }
+        }
+        let brick_nodes: Vec<Vec<(glam::Vec3, glam::Vec3)>> = bricks
+            .iter()
+            .map(|b| {
+                (0..8u32)
+                    .map(|j| b * 2 + glam::UVec3::new(j & 1, (j >> 1) & 1, j >> 2))
+                    .filter(|g| g.cmplt(lat_n).all())
+                    .map(|g| lat_origin + g.as_vec3() * lat_spacing)
+                    .filter_map(|x| Some((x, (camera.position() - x).try_normalize()?)))
+                    .collect()
+            })
+            .collect();
+        // As many bricks as make about n nodes.
+        let fill_bricks = (args.n / 8).clamp(1, brick_nodes.len());
+        let fill_nodes: usize = brick_nodes[..fill_bricks].iter().map(Vec::len).sum();
         let nf = models::cloud::features::N_FEATURES;
         let mut rows = vec![0.0; queries.len() * nf];
         for (row, &(p, w)) in rows.chunks_exact_mut(nf).zip(&queries) {
@@ -432,7 +460,28 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
                 .collect();
         let mut kernel_us: Vec<Vec<f64>> = vec![vec![]; kernels.len()];
         let mut in_order = vec![];
+        let (mut fill_one, mut fill_many) = (vec![], vec![]);
+        let mut brick_out = [0.0f32; 8];
+        let (mut brick_xs, mut brick_ws) = ([glam::Vec3::ZERO; 8], [glam::Vec3::ZERO; 8]);
         for round in 0..=args.rounds {
+            // The lattice's blocks node by node, then each block in one batch.
+            let t = std::time::Instant::now();
+            for nodes in &brick_nodes[..fill_bricks] {
+                for &(p, w) in nodes {
+                    sink += bound.predict(&medium, &sun, p, w);
+                }
+            }
+            let fill_one_us = t.elapsed().as_secs_f64() * 1e6 / fill_nodes as f64;
+            let t = std::time::Instant::now();
+            for nodes in &brick_nodes[..fill_bricks] {
+                for (k, &(p, w)) in nodes.iter().enumerate() {
+                    (brick_xs[k], brick_ws[k]) = (p, w);
+                }
+                let m = nodes.len();
+                bound.predict_many(&medium, &sun, &brick_xs[..m], &brick_ws[..m], &mut brick_out[..m]);
+                sink += brick_out[0];
+            }
+            let fill_many_us = t.elapsed().as_secs_f64() * 1e6 / fill_nodes as f64;
             let t = std::time::Instant::now();
             for i in 0..args.n {
                 let (p, w) = ordered[i % ordered.len()];
@@ -486,6 +535,8 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
             }
             let event_us = t.elapsed().as_secs_f64() * 1e6 / m as f64;
             if round > 0 {
+                fill_one.push(fill_one_us);
+                fill_many.push(fill_many_us);
                 in_order.push(in_order_us);
                 total.push(total_us);
                 features.push(features_us);
@@ -535,6 +586,18 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
             "| features + network per prediction, 1 thread, in random order (camera-path vertices of random \
              views) | {total_us:.2} us ({total_range}) = {:.1} path-traced scattering events | |",
             total_us / event_us
+        );
+        let (fill_one_range, fill_many_range) = (spread(&fill_one), spread(&fill_many));
+        let (fill_one_us, fill_many_us) = (median(&mut fill_one), median(&mut fill_many));
+        println!(
+            "| a lattice of answers toward the camera (prediction at bounce 1, 128 nodes per axis), per node, \
+             1 thread, node by node ({fill_bricks} blocks of 2^3 nodes the view's first vertices read, \
+             {fill_nodes} nodes) | {fill_one_us:.2} us ({fill_one_range}) | |"
+        );
+        println!(
+            "| the same blocks, each block's nodes in one batch (features, then the network on the 8 rows \
+             together) | {fill_many_us:.2} us ({fill_many_range}) = {:.2}x node by node | |",
+            fill_many_us / fill_one_us
         );
         println!("| features alone | {features_us:.2} us ({features_range}) | |");
         println!(
