@@ -122,11 +122,15 @@ fn compare_panel_shows_the_bias() {
 /// BDPT with the point-to-point model: the window switches to it with the shipped
 /// model and no file, shows r and the model, warns that the default medium (albedo 1,
 /// g 0.85) is outside the model's training, and compares against BDPT split at 2k + 1.
+/// A target of 4 spp hands the image from the preview to the render (at its target the
+/// render is shown whatever its noise), so the test does not wait for BDPT's noise to
+/// fall below the handoff's 5 %, which takes most of a minute on two cores.
 #[test]
 fn bdpt_prediction_in_the_window() {
     let (mut h, mut s) = small_scene(24, 24, 24);
     s.render.mode = "predict".into();
     s.render.integrator = "bdpt".into();
+    h.state_mut().set_target(app::gui::worker::RenderTarget::Spp(4));
     h.state_mut().set_scene(s);
     step_until(&mut h, "no image in BDPT prediction mode", |a| {
         matches!(a.rendered_mode(), Some(engine::Mode::Predict { .. }))
@@ -136,6 +140,7 @@ fn bdpt_prediction_in_the_window() {
     assert!(h.query_all_by_label("distance threshold r").next().is_some(), "no r slider");
     let text = h.state().worker_message().expect("the medium warning");
     assert!(text.contains("trained for albedo"), "{text}");
+    h.state_mut().set_target(app::gui::worker::RenderTarget::Unlimited);
     h.state_mut().set_compare(true);
     // A noise floor needs two passes of both renders: until then the bias is not judged.
     step_until(&mut h, "no comparison appeared", |a| a.compare_bias().is_some_and(|(_, floor)| floor > 0.0));

@@ -28,6 +28,7 @@ fn depth_field_features_and_predictions_match_ray_marching() {
     let mut rng = Rng::new(17, 0, 0);
     let (mut feat_err, mut count) = (0.0f64, 0usize);
     let mut rel = vec![];
+    let mut queries = vec![];
     while rel.len() < 300 {
         let x = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5;
         if medium.grid().lookup(x) < 0.05 {
@@ -41,6 +42,7 @@ fn depth_field_features_and_predictions_match_ray_marching() {
             feat_err += (a[i] - b[i]).abs() as f64;
             count += 1;
         }
+        queries.push((x, w));
         let (pf, pm) = (bound.predict(&medium, &sun, x, w), model.predict(&medium, &sun, x, w));
         assert!(pf.is_finite() && pf >= 0.0);
         rel.push(((pf - pm) / pm.max(1e-6)).abs());
@@ -57,6 +59,16 @@ fn depth_field_features_and_predictions_match_ray_marching() {
     let other = Sun::new(Vec3::NEG_Y, Vec3::ONE, 0.0).unwrap();
     let x = Vec3::ZERO;
     assert_eq!(bound.predict(&medium, &other, x, Vec3::X), model.predict(&medium, &other, x, Vec3::X));
+    // A batch (37 points: two full batches of the network's rows and a tail) gives each
+    // point the bits of a single prediction, for the bound sun and for another.
+    let (xs, ws): (Vec<_>, Vec<_>) = queries[..37].iter().copied().unzip();
+    for light in [&sun, &other] {
+        let mut many = vec![f32::NAN; 37];
+        bound.predict_many(&medium, light, &xs, &ws, &mut many);
+        for (i, &(x, w)) in queries[..37].iter().enumerate() {
+            assert_eq!(many[i].to_bits(), bound.predict(&medium, light, x, w).to_bits(), "point {i}");
+        }
+    }
 }
 
 /// The point-to-point model bound to a cloud answers a batch (how the renderer asks

@@ -13,7 +13,7 @@ use super::directions::{DirectionSetKind, LightFrame};
 use super::features::FeatureExtractor;
 use super::sky_field::SkyDepthField;
 use crate::nn::dense::Activation;
-use crate::nn::mlp::{Mlp, Scratch};
+use crate::nn::mlp::{BATCH_ROWS, Mlp, Scratch};
 use engine::{Cancel, InScatterPredictor, Medium, PhaseFunction, Sun};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -321,6 +321,27 @@ impl GlobalModel {
         untransform_target(self.target, raw, y * st.target_std + st.target_mean)
     }
 
+    /// [`GlobalModel::predict_features`] on feature rows `stride` apart (each row's first
+    /// n values, n the extractor's length), one per output: the same bits on each row,
+    /// the network run on several rows per pass ([`crate::nn::Mlp::forward_batch`]).
+    pub fn predict_features_many(&self, raw: &[f32], stride: usize, out: &mut [f32], scratch: &mut Scratch) {
+        let st = &self.sidecar.standardization;
+        let n = self.features.len();
+        assert!(stride >= n && raw.len() >= out.len().saturating_sub(1) * stride + n, "feature rows");
+        let mut x = std::mem::take(&mut scratch.batch);
+        x.resize(out.len() * n, 0.0);
+        for (r, row) in x.chunks_exact_mut(n).enumerate() {
+            for (k, (xk, v)) in row.iter_mut().zip(&raw[r * stride..r * stride + n]).enumerate() {
+                *xk = (v - st.feature_mean[k]) / st.feature_std[k];
+            }
+        }
+        self.mlp.forward_batch(&x, out, scratch);
+        for (r, o) in out.iter_mut().enumerate() {
+            *o = untransform_target(self.target, &raw[r * stride..r * stride + n], *o * st.target_std + st.target_mean);
+        }
+        scratch.batch = x;
+    }
+
     pub fn feature_extractor(&self) -> &FeatureExtractor {
         &self.features
     }
@@ -464,6 +485,34 @@ impl InScatterPredictor for BoundGlobalModel {
         }
         let v = SCRATCH.with(|s| self.model.predict_features(&feat[..n], &mut s.borrow_mut()));
         if v.is_finite() { v } else { 0.0 }
+    }
+
+    /// For the bound cloud and sun, the features of up to [`BATCH_ROWS`] points at a
+    /// time from the sun's field, then the network on all of them in one batched pass
+    /// (the same bits as `predict` on each point); other lights point by point.
+    fn predict_many(&self, medium: &Medium, sun: &Sun, xs: &[Vec3], omegas: &[Vec3], out: &mut [f32]) {
+        assert!(xs.len() == omegas.len() && xs.len() == out.len(), "one direction and one output per point");
+        let bound = Arc::ptr_eq(medium.grid(), &self.grid) && medium.rho() == self.rho;
+        if !(bound && sun.direction().dot(self.omega_l) >= self.near_cos) {
+            for ((o, &x), &omega) in out.iter_mut().zip(xs).zip(omegas) {
+                *o = self.predict(medium, sun, x, omega);
+            }
+            return;
+        }
+        const ROW: usize = 4 + 256;
+        let n = self.model.features.len();
+        let mut feat = [0.0f32; BATCH_ROWS * ROW];
+        for ((xc, wc), oc) in xs.chunks(BATCH_ROWS).zip(omegas.chunks(BATCH_ROWS)).zip(out.chunks_mut(BATCH_ROWS)) {
+            for ((&x, &omega), row) in xc.iter().zip(wc).zip(feat.chunks_exact_mut(ROW)) {
+                self.features(medium, x, omega, &mut row[..n]);
+            }
+            SCRATCH.with(|s| self.model.predict_features_many(&feat, ROW, oc, &mut s.borrow_mut()));
+            for o in oc.iter_mut() {
+                if !o.is_finite() {
+                    *o = 0.0;
+                }
+            }
+        }
     }
 
     fn predicts_single_scattering(&self) -> bool {

@@ -410,19 +410,19 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
         }
         // What prediction at bounce 1 fills: the nodes of a lattice of the model's answers
         // toward the camera (128 per axis over the cloud), in the lazy lattice's fill
-        // blocks of 2^3 nodes, the blocks the view's first vertices read, in the order
-        // they are first read.
+        // blocks of 2^3 nodes: the blocks that hold the lower corner of each first
+        // vertex's cell, in the order the vertices reach them.
         let (lat_n, lat_spacing) = engine::field::lattice_over(&medium, 128);
         let lat_origin = medium.grid().support_bounds().min;
-        let mut bricks: Vec<glam::UVec3> = vec![];
+        let mut blocks: Vec<glam::UVec3> = vec![];
         let mut seen = std::collections::HashSet::new();
         for &(p, _) in &ordered {
             let q = ((p - lat_origin) / lat_spacing).floor().as_uvec3().min(lat_n - glam::UVec3::splat(2));
             if seen.insert(q / 2) {
-                bricks.push(q / 2);
+                blocks.push(q / 2);
             }
         }
-        let brick_nodes: Vec<Vec<(glam::Vec3, glam::Vec3)>> = bricks
+        let block_nodes: Vec<Vec<(glam::Vec3, glam::Vec3)>> = blocks
             .iter()
             .map(|b| {
                 (0..8u32)
@@ -433,9 +433,9 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
                     .collect()
             })
             .collect();
-        // As many bricks as make about n nodes.
-        let fill_bricks = (args.n / 8).clamp(1, brick_nodes.len());
-        let fill_nodes: usize = brick_nodes[..fill_bricks].iter().map(Vec::len).sum();
+        // As many blocks as make about n nodes.
+        let fill_blocks = (args.n / 8).clamp(1, block_nodes.len());
+        let fill_nodes: usize = block_nodes[..fill_blocks].iter().map(Vec::len).sum();
         let nf = models::cloud::features::N_FEATURES;
         let mut rows = vec![0.0; queries.len() * nf];
         for (row, &(p, w)) in rows.chunks_exact_mut(nf).zip(&queries) {
@@ -461,25 +461,25 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
         let mut kernel_us: Vec<Vec<f64>> = vec![vec![]; kernels.len()];
         let mut in_order = vec![];
         let (mut fill_one, mut fill_many) = (vec![], vec![]);
-        let mut brick_out = [0.0f32; 8];
-        let (mut brick_xs, mut brick_ws) = ([glam::Vec3::ZERO; 8], [glam::Vec3::ZERO; 8]);
+        let mut block_out = [0.0f32; 8];
+        let (mut block_xs, mut block_ws) = ([glam::Vec3::ZERO; 8], [glam::Vec3::ZERO; 8]);
         for round in 0..=args.rounds {
             // The lattice's blocks node by node, then each block in one batch.
             let t = std::time::Instant::now();
-            for nodes in &brick_nodes[..fill_bricks] {
+            for nodes in &block_nodes[..fill_blocks] {
                 for &(p, w) in nodes {
                     sink += bound.predict(&medium, &sun, p, w);
                 }
             }
             let fill_one_us = t.elapsed().as_secs_f64() * 1e6 / fill_nodes as f64;
             let t = std::time::Instant::now();
-            for nodes in &brick_nodes[..fill_bricks] {
+            for nodes in &block_nodes[..fill_blocks] {
                 for (k, &(p, w)) in nodes.iter().enumerate() {
-                    (brick_xs[k], brick_ws[k]) = (p, w);
+                    (block_xs[k], block_ws[k]) = (p, w);
                 }
                 let m = nodes.len();
-                bound.predict_many(&medium, &sun, &brick_xs[..m], &brick_ws[..m], &mut brick_out[..m]);
-                sink += brick_out[0];
+                bound.predict_many(&medium, &sun, &block_xs[..m], &block_ws[..m], &mut block_out[..m]);
+                sink += block_out[0];
             }
             let fill_many_us = t.elapsed().as_secs_f64() * 1e6 / fill_nodes as f64;
             let t = std::time::Instant::now();
@@ -591,7 +591,7 @@ pub fn bench_predict_cloud(args: BenchPredictCloudArgs) -> Result<()> {
         let (fill_one_us, fill_many_us) = (median(&mut fill_one), median(&mut fill_many));
         println!(
             "| a lattice of answers toward the camera (prediction at bounce 1, 128 nodes per axis), per node, \
-             1 thread, node by node ({fill_bricks} blocks of 2^3 nodes the view's first vertices read, \
+             1 thread, node by node ({fill_blocks} blocks of 2^3 nodes the view's first vertices read, \
              {fill_nodes} nodes) | {fill_one_us:.2} us ({fill_one_range}) | |"
         );
         println!(
