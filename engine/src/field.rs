@@ -133,9 +133,10 @@ pub fn optical_depth_sweep(
 
 /// A lazily filled lattice's source: the values of the nodes at `positions` into
 /// `values` (the same length), each a function of its position alone. It is called
-/// with the nodes of one brick at a time, so that a source that evaluates several
-/// points faster together (a network, several rows per pass over its weights) gets
-/// them together, and neighbouring nodes' feature lookups meet in the cache.
+/// with the nodes of one block of 2^3 (a lazy lattice) or one brick of 4^3 (a lattice
+/// filled up front) at a time, so that a source that evaluates several points faster
+/// together (a network, several rows per pass over its weights) gets them together,
+/// and neighbouring nodes' feature lookups meet in the cache.
 pub type NodeSource = Arc<dyn Fn(&[Vec3], &mut [f32]) + Send + Sync>;
 
 /// Bits of a node not evaluated yet (a NaN no source returns: sources' values are

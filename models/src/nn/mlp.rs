@@ -24,7 +24,7 @@ pub struct Scratch {
     /// first use).
     rows_a: Vec<f32>,
     rows_b: Vec<f32>,
-    /// The caller's input rows for a batch (the cloud-aware model standardizes here).
+    /// The caller's input rows for a batch (the models standardize their features here).
     pub(crate) batch: Vec<f32>,
 }
 
