@@ -168,20 +168,11 @@ impl CloudModel {
     /// [`CloudModel::predict_features`] on each row, the network run on several rows
     /// per pass ([`Mlp::forward_batch`]).
     pub fn predict_features_many(&self, raw: &[f32], stride: usize, out: &mut [f32], scratch: &mut Scratch) {
-        let n = self.inputs();
-        assert!(stride >= n && raw.len() >= out.len().saturating_sub(1) * stride + n, "feature rows");
-        let mut x = std::mem::take(&mut scratch.batch);
-        x.resize(out.len() * n, 0.0);
-        for (r, row) in x.chunks_exact_mut(n).enumerate() {
-            for (k, (xk, v)) in row.iter_mut().zip(&raw[r * stride..r * stride + n]).enumerate() {
-                *xk = (v - self.sidecar.feature_mean[k]) * self.inv_std[k];
-            }
-        }
-        self.mlp.forward_batch(&x, out, scratch);
+        let (mean, inv_std) = (&self.sidecar.feature_mean, &self.inv_std);
+        self.mlp.forward_batch_standardized(raw, stride, out, scratch, |k, v| (v - mean[k]) * inv_std[k]);
         for o in out.iter_mut() {
             *o = self.untransform(*o);
         }
-        scratch.batch = x;
     }
 }
 

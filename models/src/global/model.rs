@@ -327,19 +327,11 @@ impl GlobalModel {
     pub fn predict_features_many(&self, raw: &[f32], stride: usize, out: &mut [f32], scratch: &mut Scratch) {
         let st = &self.sidecar.standardization;
         let n = self.features.len();
-        assert!(stride >= n && raw.len() >= out.len().saturating_sub(1) * stride + n, "feature rows");
-        let mut x = std::mem::take(&mut scratch.batch);
-        x.resize(out.len() * n, 0.0);
-        for (r, row) in x.chunks_exact_mut(n).enumerate() {
-            for (k, (xk, v)) in row.iter_mut().zip(&raw[r * stride..r * stride + n]).enumerate() {
-                *xk = (v - st.feature_mean[k]) / st.feature_std[k];
-            }
-        }
-        self.mlp.forward_batch(&x, out, scratch);
+        let standardize = |k: usize, v: f32| (v - st.feature_mean[k]) / st.feature_std[k];
+        self.mlp.forward_batch_standardized(raw, stride, out, scratch, standardize);
         for (r, o) in out.iter_mut().enumerate() {
             *o = untransform_target(self.target, &raw[r * stride..r * stride + n], *o * st.target_std + st.target_mean);
         }
-        scratch.batch = x;
     }
 
     pub fn feature_extractor(&self) -> &FeatureExtractor {

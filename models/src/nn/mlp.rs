@@ -152,6 +152,31 @@ impl Mlp {
             .collect()
     }
 
+    /// [`Mlp::forward_batch`] on raw rows `stride` apart, each row's first n_inputs
+    /// values standardized by `standardize(k, v)` (input k's value v) into the scratch's
+    /// batch rows first: the models' batched predictions, each standardizing as its
+    /// single-row path does.
+    pub(crate) fn forward_batch_standardized(
+        &self,
+        raw: &[f32],
+        stride: usize,
+        out: &mut [f32],
+        scratch: &mut Scratch,
+        standardize: impl Fn(usize, f32) -> f32,
+    ) {
+        let n = self.n_inputs();
+        assert!(stride >= n && raw.len() >= out.len().saturating_sub(1) * stride + n, "feature rows");
+        let mut x = std::mem::take(&mut scratch.batch);
+        x.resize(out.len() * n, 0.0);
+        for (r, row) in x.chunks_exact_mut(n).enumerate() {
+            for (k, (xk, &v)) in row.iter_mut().zip(&raw[r * stride..r * stride + n]).enumerate() {
+                *xk = standardize(k, v);
+            }
+        }
+        self.forward_batch(&x, out, scratch);
+        scratch.batch = x;
+    }
+
     /// Batched entry point: `xs` holds rows of n_inputs values, one output per row, the
     /// same bits as [`Mlp::forward`] on each. [`BATCH_ROWS`] rows at a time pass
     /// through each layer together, so a weight is loaded once for several rows (a
