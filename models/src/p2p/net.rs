@@ -349,9 +349,7 @@ impl P2pEvaluator {
     /// [`P2pEvaluator::forward_batch`] with the portable kernel.
     pub fn forward_batch_portable(&self, xs: &[f32], out: &mut [f32], s: &mut P2pBatchScratch) {
         self.forward_batch_with(xs, out, s, |l, x, y, rows, ws| {
-            for r in 0..rows {
-                layer_forward(l, &x[r * ws..], &mut y[r * ws..], RELU);
-            }
+            Kernel::Portable.layer_forward_rows(l, x, y, rows, ws, RELU)
         })
     }
 

@@ -417,15 +417,10 @@ fn resample_axis(
                 if i0 < i1 {
                     padded[(i0 - lo0) as usize..(i1 - lo0) as usize].copy_from_slice(&src[i0 as usize..i1 as usize]);
                 }
-                for (b, block) in dst.chunks_mut(8).enumerate() {
-                    let o = 8 * b;
-                    let mut acc = [0.0f32; 8];
-                    for (k, wk) in w.iter().enumerate() {
-                        for (j, a) in acc.iter_mut().enumerate() {
-                            *a += wk * padded[step * (o + j) + k];
-                        }
-                    }
-                    block.copy_from_slice(&acc[..block.len()]);
+                match step {
+                    1 => blocks_of_eight::<1>(&padded, w, dst),
+                    2 => blocks_of_eight::<2>(&padded, w, dst),
+                    _ => blocks_of_eight_strided(&padded, w, step, dst),
                 }
             }
         });
@@ -452,6 +447,40 @@ fn resample_axis(
         });
     }
     (out, out_dims)
+}
+
+/// Outputs of one line along x, eight at a time: output o sums `w[k] *
+/// padded[STEP o + k]` over k in order, from +0. With the step a constant (the blurs'
+/// 1 and the octaves' 2) the eight products of a tap are one vector load (or two and
+/// a shuffle) and one multiply and add; a step known only at run time reads its
+/// inputs one by one.
+#[inline]
+fn blocks_of_eight<const STEP: usize>(padded: &[f32], w: &[f32], dst: &mut [f32]) {
+    for (b, block) in dst.chunks_mut(8).enumerate() {
+        let o = STEP * 8 * b;
+        let mut acc = [0.0f32; 8];
+        for (k, wk) in w.iter().enumerate() {
+            let src = &padded[o + k..o + k + 7 * STEP + 1];
+            for (j, a) in acc.iter_mut().enumerate() {
+                *a += wk * src[STEP * j];
+            }
+        }
+        block.copy_from_slice(&acc[..block.len()]);
+    }
+}
+
+/// [`blocks_of_eight`] for any step.
+fn blocks_of_eight_strided(padded: &[f32], w: &[f32], step: usize, dst: &mut [f32]) {
+    for (b, block) in dst.chunks_mut(8).enumerate() {
+        let o = 8 * b;
+        let mut acc = [0.0f32; 8];
+        for (k, wk) in w.iter().enumerate() {
+            for (j, a) in acc.iter_mut().enumerate() {
+                *a += wk * padded[step * (o + j) + k];
+            }
+        }
+        block.copy_from_slice(&acc[..block.len()]);
+    }
 }
 
 /// [`resample_axis`] line by line, as the definition of its sums (tests compare the
@@ -1033,8 +1062,8 @@ mod tests {
 
     /// The separable filter, vectorized along rows and slices, makes exactly the sums
     /// of its line-by-line definition, along each axis, for a filter and resampling
-    /// like an octave's (halving, padded) and a blur's (same grid), and for taps that
-    /// differ from output to output.
+    /// like an octave's (halving, padded) and a blur's (same grid), for a step of 3,
+    /// and for taps that differ from output to output.
     #[test]
     fn resampling_matches_the_line_by_line_sums() {
         let dims = [13usize, 9, 11];
@@ -1049,6 +1078,8 @@ mod tests {
                     (11.5, 0.5 - 16.0, 2.0, 23),
                     (0.8, 0.0, 1.0, dims[axis]),
                     (2.0, 0.25, 1.5, 8),
+                    // An integer step other than the octaves' 2: the strided path.
+                    (4.0, -2.0, 3.0, 7),
                 ]
             {
                 let (fast, out_dims) = resample_axis(&data, dims, axis, var, start, step, n_out);
