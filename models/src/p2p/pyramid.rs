@@ -418,9 +418,9 @@ fn resample_axis(
                     padded[(i0 - lo0) as usize..(i1 - lo0) as usize].copy_from_slice(&src[i0 as usize..i1 as usize]);
                 }
                 match step {
-                    1 => blocks_of_eight::<1>(&padded, w, dst),
-                    2 => blocks_of_eight::<2>(&padded, w, dst),
-                    _ => blocks_of_eight_strided(&padded, w, step, dst),
+                    1 => blocks_of_eight(&padded, w, 1, dst),
+                    2 => blocks_of_eight(&padded, w, 2, dst),
+                    _ => blocks_of_eight(&padded, w, step, dst),
                 }
             }
         });
@@ -450,33 +450,19 @@ fn resample_axis(
 }
 
 /// Outputs of one line along x, eight at a time: output o sums `w[k] *
-/// padded[STEP o + k]` over k in order, from +0. With the step a constant (the blurs'
-/// 1 and the octaves' 2) the eight products of a tap are one vector load (or two and
-/// a shuffle) and one multiply and add; a step known only at run time reads its
-/// inputs one by one.
-#[inline]
-fn blocks_of_eight<const STEP: usize>(padded: &[f32], w: &[f32], dst: &mut [f32]) {
+/// padded[step o + k]` over k in order, from +0. Always inlined, so that a call with
+/// a literal step (the blurs' 1, the octaves' 2) is compiled for that step: the eight
+/// products of a tap become one vector load (or two and a shuffle) and one multiply
+/// and add, where a step known only at run time reads its inputs one by one.
+#[inline(always)]
+fn blocks_of_eight(padded: &[f32], w: &[f32], step: usize, dst: &mut [f32]) {
     for (b, block) in dst.chunks_mut(8).enumerate() {
-        let o = STEP * 8 * b;
+        let o = step * 8 * b;
         let mut acc = [0.0f32; 8];
         for (k, wk) in w.iter().enumerate() {
-            let src = &padded[o + k..o + k + 7 * STEP + 1];
+            let src = &padded[o + k..o + k + 7 * step + 1];
             for (j, a) in acc.iter_mut().enumerate() {
-                *a += wk * src[STEP * j];
-            }
-        }
-        block.copy_from_slice(&acc[..block.len()]);
-    }
-}
-
-/// [`blocks_of_eight`] for any step.
-fn blocks_of_eight_strided(padded: &[f32], w: &[f32], step: usize, dst: &mut [f32]) {
-    for (b, block) in dst.chunks_mut(8).enumerate() {
-        let o = 8 * b;
-        let mut acc = [0.0f32; 8];
-        for (k, wk) in w.iter().enumerate() {
-            for (j, a) in acc.iter_mut().enumerate() {
-                *a += wk * padded[step * (o + j) + k];
+                *a += wk * src[step * j];
             }
         }
         block.copy_from_slice(&acc[..block.len()]);
@@ -1078,7 +1064,7 @@ mod tests {
                     (11.5, 0.5 - 16.0, 2.0, 23),
                     (0.8, 0.0, 1.0, dims[axis]),
                     (2.0, 0.25, 1.5, 8),
-                    // An integer step other than the octaves' 2: the strided path.
+                    // An integer step other than the blurs' 1 and the octaves' 2.
                     (4.0, -2.0, 3.0, 7),
                 ]
             {
